@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# The end-to-end suite: every rostest of every package, one after the other,
+# on the vcan0 that tools/vcan_run.sh provides (natively or in user-mode Linux).
+#
+#   tools/e2e_suite.sh RESULTS_DIR [PATTERN]
+#
+# PATTERN (a grep -E expression) selects test files by path. For each test
+# file a line "<pkg> <file> <exit status> <seconds>" goes to
+# RESULTS_DIR/manifest; rostest's JUnit files go to RESULTS_DIR/xml and its
+# output to RESULTS_DIR/logs. tools/testreport.py turns them into the summary.
+set -uo pipefail
+REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+results=${1:?results dir}
+pattern=${2:-.}
+cd "$REPO"
+# shellcheck disable=SC1091
+set +u; . tools/env.sh; set -u
+
+mkdir -p "$results/xml" "$results/logs"
+: > "$results/manifest"
+echo "--- ip -details link show vcan0"
+ip -details link show vcan0
+echo "--- python: $(command -v python3) ($(python3 -c 'import can, canopen; print("python-can", can.__version__, "canopen", canopen.__version__)'))"
+
+mapfile -t tests < <(ls */test/rostest/*.test 2>/dev/null | grep -E -- "$pattern" | sort)
+echo "--- ${#tests[@]} rostest files"
+for t in "${tests[@]}"; do
+  pkg=${t%%/*}
+  file=$(basename "$t")
+  start=$(date +%s.%N)
+  # A hard limit per file so one hung test cannot eat CI's 90 minutes.
+  timeout -k 10 900 rostest --results-base-dir="$results/xml/$pkg.$file" "$pkg" "$file" device:=vcan0 \
+      > "$results/logs/$pkg.$file.log" 2>&1
+  rc=$?
+  secs=$(python3 -c "import time; print('%.1f' % (time.time() - $start))")
+  echo "$pkg $file $rc $secs" >> "$results/manifest"
+  if [ $rc = 0 ]; then echo "ok    $pkg/$file (${secs}s)"; else
+    echo "FAIL  $pkg/$file (exit $rc, ${secs}s): last lines of its log:"
+    tail -25 "$results/logs/$pkg.$file.log" | sed 's/^/      /'
+  fi
+done
+exit 0
