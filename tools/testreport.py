@@ -52,7 +52,8 @@ def _cases(path: str) -> List[Tuple[str, str]]:
             bad = case.find("failure")
             if bad is None:
                 bad = case.find("error")
-            out.append((name, "failed: %s" % (bad.get("message") or "").strip()[:300]))
+            text = (bad.get("message") or bad.text or "").strip()
+            out.append((name, "failed: %s" % text.splitlines()[0][:300] if text else "failed"))
         elif case.find("skipped") is not None:
             out.append((name, "skipped"))
         else:

@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# The main job (`make demo`): a simulated EPOS4 moving a joint, no hardware.
+# Sets up, then runs tools/demo_session.sh on a real vcan0 (natively where
+# the kernel has vcan, otherwise inside user-mode Linux).
+set -euo pipefail
+REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "$REPO"
+tools/setup.sh
+exec tools/vcan_run.sh tools/demo_session.sh
