@@ -9,7 +9,8 @@ rundir=$VCAN_RUNDIR
 
 mount -t proc proc /proc
 mount -t sysfs sysfs /sys
-# A private /dev, /tmp and /dev/shm: nothing inside touches the host's.
+# A private /dev and /dev/shm. /tmp stays the host's: the clone (and so the
+# run folder) may live there.
 mount -t devtmpfs devtmpfs /dev 2>/dev/null || true
 mkdir -p /dev/shm /dev/pts
 [ -e /dev/fd ] || ln -s /proc/self/fd /dev/fd
@@ -18,7 +19,6 @@ mkdir -p /dev/shm /dev/pts
 [ -e /dev/stderr ] || ln -s /proc/self/fd/2 /dev/stderr
 mount -t tmpfs tmpfs /dev/shm
 mount -t devpts devpts /dev/pts 2>/dev/null || true
-mount -t tmpfs tmpfs /tmp
 mount -t tmpfs tmpfs /run
 
 kv=$(uname -r)
