@@ -37,17 +37,21 @@ if [ $run_fast = 1 ]; then
   dirs=(); pypath=()
   for d in */test/unit tests/unit; do [ -d "$d" ] && dirs+=("$d"); done
   for d in */src; do [ -d "$d" ] && pypath+=("$REPO/$d"); done
-  rm -f "$results/pytest.xml"
-  (
-    set +u; . tools/env.sh; set -u
-    PYTHONPATH="$(IFS=:; echo "${pypath[*]}"):${PYTHONPATH:-}" \
-      .venv/bin/python -m pytest -q -p no:cacheprovider --import-mode=importlib \
-      --junitxml="$results/pytest.xml" "${dirs[@]}"
-  )
-  rc=$?
-  # 5 = no tests collected: the report counts that as a failure too.
-  [ $rc = 0 ] || [ $rc = 1 ] || [ $rc = 5 ] || echo "pytest exited with status $rc"
-  report_args+=(--pytest "$results/pytest.xml")
+  # One pytest process per test folder: test modules of different packages
+  # may share a name, and a package folder must never shadow the package.
+  rm -f "$results"/pytest-*.xml
+  for d in "${dirs[@]}"; do
+    xml="$results/pytest-$(echo "$d" | tr '/' '_').xml"
+    (
+      set +u; . tools/env.sh; set -u
+      PYTHONPATH="$(IFS=:; echo "${pypath[*]}"):${PYTHONPATH:-}" \
+        timeout -k 10 1800 .venv/bin/python -m pytest -q -p no:cacheprovider --junitxml="$xml" "$d"
+    )
+    rc=$?
+    # 5 = no tests collected: the report counts a missing or empty run too.
+    [ $rc = 0 ] || [ $rc = 1 ] || [ $rc = 5 ] || echo "pytest $d exited with status $rc"
+    report_args+=(--pytest "$xml")
+  done
 fi
 t_fast=$(date +%s)
 

@@ -127,7 +127,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     total = Tally()
     for path in args.pytest:
         t = tally_junit(path, "pytest")
-        print("fast suite (pytest): %d passed, %d failed, %d skipped" % (t.passed, t.failed, t.skipped))
+        print("fast suite (pytest) %s: %d passed, %d failed, %d skipped" % (
+            os.path.basename(path), t.passed, t.failed, t.skipped))
         total.add(t)
     if args.e2e:
         t = tally_e2e(args.e2e, args.e2e_expected)
