@@ -102,14 +102,16 @@ for w in "${wanted[@]}"; do
   ln -sfn "$REPO/$w" ".ws/src/$(basename "$w")"
 done
 
-log "building the workspace (.ws) with $SYS_PY"
+log "building the workspace (.ws) with .venv/bin/python3"
 (
   cd .ws
   set +u
   [ -n "$ROS_SETUP" ] && . "$ROS_SETUP"
   set -u
   # /usr/bin first: catkin must find Debian's python3 and its catkin_pkg.
-  PATH=/usr/bin:$PATH catkin_make -DPYTHON_EXECUTABLE="$SYS_PY" -DCMAKE_BUILD_TYPE=Release \
+  # The .venv python (Debian's, plus canopen/python-can) goes into the
+  # shebang of the devel-space relays rosrun/roslaunch start nodes through.
+  PATH=/usr/bin:$PATH catkin_make -DPYTHON_EXECUTABLE="$REPO/.venv/bin/python3" -DCMAKE_BUILD_TYPE=Release \
       > build.log 2>&1 || { tail -40 build.log; echo "[setup] catkin_make failed (full log: .ws/build.log)"; exit 1; }
 )
 log "workspace built: source tools/env.sh to use it"
