@@ -104,6 +104,9 @@ done
 
 log "building the workspace (.ws) with .venv/bin/python3"
 (
+  # One build at a time: parallel test runs share this workspace.
+  exec 9> .ws/.build.lock
+  flock 9
   cd .ws
   set +u
   [ -n "$ROS_SETUP" ] && . "$ROS_SETUP"
