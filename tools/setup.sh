@@ -26,6 +26,7 @@ DEBIAN_PACKAGES=(
   ros-diagnostic-msgs libdiagnostic-msgs-dev libroscpp-dev libactionlib-dev
   python3-tf2-geometry-msgs libtf2-msgs-dev ros-tf2-msgs python3-tf2-msgs
   user-mode-linux kmod iproute2 python3-venv python3-yaml make g++ cmake
+  python3-matplotlib  # benchmark plots (Debian's, built against Debian's numpy)
 )
 
 os_id=$( . /etc/os-release 2>/dev/null; echo "${ID:-unknown}-${VERSION_ID:-}" )
