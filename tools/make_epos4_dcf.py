@@ -185,7 +185,9 @@ COMMON: Dict[Tuple[int, int], str] = {
     (0x60C5, 0): "100000",
     # CSP: the master sends a target every 10 ms.
     (0x60C2, 1): "10",
-    (0x6098, 0): "37",
+    # 0 = no homing required (CiA 402), as the seeds set it for the PPM, PVM
+    # and CSP examples: the driver homes at init only where 0x6098 != 0.
+    (0x6098, 0): "0",
 }
 
 VARIANTS: Dict[str, Tuple[int, Dict[Tuple[int, int], str]]] = {

@@ -1,0 +1,80 @@
+"""Helpers of the mani_ros rostest scripts (imported from the scripts beside it)."""
+from __future__ import annotations
+
+import time
+from typing import Callable, List, Optional
+
+import actionlib
+import can
+import rospy
+from geometry_msgs.msg import Twist
+from nav_msgs.msg import Odometry
+
+from mani_ros.msg import LocomotionControlAction, LocomotionControlGoal
+
+
+def wait_until(condition: Callable[[], bool], timeout: float, step: float = 0.05) -> bool:
+    """Poll condition until it holds or timeout [s] passes; returns the last value."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not rospy.is_shutdown():
+        if condition():
+            return True
+        time.sleep(step)
+    return bool(condition())
+
+
+def lc_client(timeout: float = 60.0) -> actionlib.SimpleActionClient:
+    client = actionlib.SimpleActionClient("locomotion_control", LocomotionControlAction)
+    if not client.wait_for_server(rospy.Duration(timeout)):
+        raise AssertionError("locomotion_control action server did not come up")
+    return client
+
+
+def twist_goal(mode: int, vx: float = 0.0, vy: float = 0.0, wz: float = 0.0,
+               timeout: float = 0.0) -> LocomotionControlGoal:
+    twist = Twist()
+    twist.linear.x, twist.linear.y, twist.angular.z = vx, vy, wz
+    return LocomotionControlGoal(mode=mode, twist=twist, timeout=timeout)
+
+
+class OdomWatcher:
+    """Keeps the latest nav_msgs/Odometry of a topic."""
+
+    def __init__(self, topic: str = "odom") -> None:
+        self.latest: Optional[Odometry] = None
+        self.count = 0
+        self.reset_peak()
+        self.sub = rospy.Subscriber(topic, Odometry, self._on, queue_size=10)
+
+    def reset_peak(self) -> None:
+        """Start collecting the extremes of twist.linear.x again."""
+        self.peak_vx = float("-inf")
+        self.low_vx = float("inf")
+
+    def _on(self, msg: Odometry) -> None:
+        self.latest = msg
+        self.count += 1
+        self.peak_vx = max(self.peak_vx, msg.twist.twist.linear.x)
+        self.low_vx = min(self.low_vx, msg.twist.twist.linear.x)
+
+
+class FrameRecorder(can.Listener):
+    """Records the frames seen on the test's CAN bus (``~device``, socketcan)."""
+
+    def __init__(self) -> None:
+        self.frames: List[can.Message] = []
+        self.bus = can.Bus(interface="socketcan", channel=rospy.get_param("~device", "vcan0"))
+        self.notifier = can.Notifier(self.bus, [self])
+
+    def close(self) -> None:
+        self.notifier.stop()
+        self.bus.shutdown()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.frames.append(msg)
+
+    def clear(self) -> None:
+        self.frames = []
+
+    def with_id(self, can_id: int) -> List[can.Message]:
+        return [f for f in list(self.frames) if f.arbitration_id == can_id]

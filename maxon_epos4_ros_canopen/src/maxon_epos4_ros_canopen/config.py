@@ -1,0 +1,557 @@
+"""ros_canopen's YAML layers, read into frozen dataclasses.
+
+The node hands over its private parameter tree (what ``rospy.get_param('~')``
+returns after the launch file's ``<rosparam command="load">`` lines); the
+layers are the ones canopen_chain_node and canopen_motor_node read:
+
+* bus layer: ``bus``, ``sync``, ``heartbeat``
+* node layer: ``nodes`` (dict or list) and ``defaults`` merged under every node
+* ROS layer: ``publish`` per node or in ``defaults``
+* controller layer: ``joint_names`` and every top-level dict with a ``type``
+
+Unknown options are accepted and listed in ``DriverConfig.warnings`` (as
+ros_canopen ignores them); a wrong type or a missing required key raises
+ConfigError naming the key and the source. Unit expressions are compiled
+here so an invalid or hostile one stops the node at start.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+
+from .objects import ObjectKey, ObjectStringError, parse_object_key, parse_publish_spec
+from .units import Expression, UnitExpressionError, compile_expression
+
+__all__ = [
+    "ConfigError",
+    "BusConfig",
+    "SyncConfig",
+    "HeartbeatConfig",
+    "PublishConfig",
+    "NodeConfig",
+    "ControllerConfig",
+    "DriverConfig",
+    "load_config",
+    "load_yaml_files",
+    "merge_params",
+    "parse_cansend",
+    "SUPPORTED_DRIVE_MODES",
+    "SWITCHING_STATES",
+    "DEFAULT_UNITS",
+]
+
+Resolver = Callable[[str], str]
+
+# CiA 402 modes of operation this driver can switch to.
+SUPPORTED_DRIVE_MODES = {1: "PPM", 3: "PVM", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
+
+# switching_state takes canopen_402's InternalState numbers. (The seed's
+# comment "2 # (Operation_Enable)" is wrong about the name: in canopen_402
+# 2 is Switch_On_Disabled and 5 is Operation_Enable.)
+SWITCHING_STATES = {
+    2: "switch_on_disabled",
+    3: "ready_to_switch_on",
+    4: "switched_on",
+    5: "operation_enabled",
+}
+
+# canopen_motor_node's defaults: ROS units rad, rad/s against a drive in
+# milli-degrees. Users of the seeds override all of them.
+DEFAULT_UNITS = {
+    "pos_to_device": "rint(rad2deg(pos)*1000)",
+    "pos_from_device": "deg2rad(obj6064)/1000",
+    "vel_to_device": "rint(rad2deg(vel)*1000)",
+    "vel_from_device": "deg2rad(obj606C)/1000",
+    "eff_to_device": "rint(eff)",
+    "eff_from_device": "0",
+}
+_UNIT_KEYS = tuple(DEFAULT_UNITS)
+
+_BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator"}
+_SYNC_KEYS = {"interval_ms", "update_ms", "overflow"}
+_HEARTBEAT_KEYS = {"rate", "msg"}
+_NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
+              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS)
+_TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names"}
+_CONTROLLER_KEYS = {"type", "joint", "joints", "publish_rate", "required_drive_mode", "constraints"}
+_SOCKETCAN_PLUGIN = "can::SocketCANInterface"
+
+
+class ConfigError(Exception):
+    """A configuration mistake; the message names the key and the source."""
+
+    def __init__(self, source: str, key: str, problem: str) -> None:
+        self.source = source
+        self.key = key
+        self.problem = problem
+        super().__init__("%s: %s: %s" % (source, key, problem))
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    device: str = "can0"
+    loopback: bool = False
+    driver_plugin: str = _SOCKETCAN_PLUGIN
+    master_allocator: str = "canopen::SimpleMaster::Allocator"
+
+
+@dataclass(frozen=True)
+class SyncConfig:
+    interval_ms: float = 0.0   # 0: no SYNC producer
+    update_ms: float = 0.0     # period of the control cycle
+    overflow: int = 0          # 0: SYNC without counter, else counter 1..overflow
+
+
+@dataclass(frozen=True)
+class HeartbeatConfig:
+    rate: float
+    can_id: int
+    data: bytes
+    extended: bool = False
+    msg: str = ""
+
+
+@dataclass(frozen=True)
+class PublishConfig:
+    spec: str          # as written, e.g. "1003sub0!"
+    key: ObjectKey
+    force: bool        # "!": read from the device each time
+    topic: str         # "<node name>_<object string>"
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    key: str                      # the entry's key ("node1") or list position
+    node_id: int
+    name: str                     # joint name
+    eds_file: str                 # resolved, absolute path
+    eds_pkg: Optional[str]
+    dcf_overlay: Tuple[Tuple[ObjectKey, str, str], ...]  # (key, value, key as written)
+    switching_state: int
+    pos_to_device: Expression
+    pos_from_device: Expression
+    vel_to_device: Expression
+    vel_from_device: Expression
+    eff_to_device: Expression
+    eff_from_device: Expression
+    publish: Tuple[PublishConfig, ...]
+    motor_allocator: str = "canopen::Motor402::Allocator"
+    extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    name: str
+    type: str
+    joints: Tuple[str, ...]
+    publish_rate: Optional[float]
+    required_drive_mode: Optional[int]
+    constraints: Mapping[str, Any]
+    params: Mapping[str, Any]     # everything else the controller may use
+    group: bool                   # "joints:" list rather than "joint:"
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    source: str
+    bus: BusConfig
+    sync: SyncConfig
+    heartbeat: Optional[HeartbeatConfig]
+    nodes: Tuple[NodeConfig, ...]
+    joint_names: Tuple[str, ...]
+    controllers: Tuple[ControllerConfig, ...]
+    warnings: Tuple[str, ...]
+
+    def node(self, name_or_key: str) -> NodeConfig:
+        for n in self.nodes:
+            if name_or_key in (n.name, n.key):
+                return n
+        raise KeyError(name_or_key)
+
+    def controller(self, name: str) -> ControllerConfig:
+        for c in self.controllers:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+
+# --------------------------------------------------------------------------
+# helpers
+
+
+def merge_params(base: Mapping[str, Any], override: Mapping[str, Any]) -> Dict[str, Any]:
+    """Deep merge: override wins, dicts are merged key by key.
+
+    This is what ``<rosparam command="load">`` of several files into one
+    namespace does, and how ros_canopen puts ``defaults`` under each node.
+    An empty entry (``node1:`` followed only by comments, as in the seed's
+    ros.yaml) adds nothing and does not erase what another file set.
+    """
+    out: Dict[str, Any] = dict(base)
+    for k, v in override.items():
+        if v is None and isinstance(out.get(k), Mapping):
+            continue
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = merge_params(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def load_yaml_files(paths: Iterable[str]) -> Dict[str, Any]:
+    """Read YAML files in order and merge them like successive rosparam loads."""
+    import yaml  # only this helper needs it; the node gets its tree from ROS
+
+    tree: Dict[str, Any] = {}
+    for path in paths:
+        with open(path, "r", encoding="utf-8") as f:
+            data = yaml.safe_load(f)
+        if data is None:
+            continue
+        if not isinstance(data, Mapping):
+            raise ConfigError(path, "(top level)", "expected a mapping of keys, got %s" % type(data).__name__)
+        tree = merge_params(tree, data)
+    return tree
+
+
+_CANSEND_RE = re.compile(r"^([0-9a-fA-F]{3}|[0-9a-fA-F]{8})#((?:[0-9a-fA-F]{2}\.?){0,8}|R)$")
+
+
+def parse_cansend(text: str) -> Tuple[int, bytes, bool]:
+    """cansend's ``<can_id>#<data>`` (``77f#05``) -> (id, data, extended)."""
+    m = _CANSEND_RE.match(text.strip())
+    if not m:
+        raise ValueError("%r is not in cansend format, e.g. '77f#05'" % text)
+    can_id = int(m.group(1), 16)
+    extended = len(m.group(1)) == 8
+    if not extended and can_id > 0x7FF:
+        raise ValueError("%r: standard CAN id 0x%X is above 0x7FF" % (text, can_id))
+    if extended and can_id > 0x1FFFFFFF:
+        raise ValueError("%r: extended CAN id 0x%X is above 0x1FFFFFFF" % (text, can_id))
+    payload = m.group(2)
+    if payload == "R":
+        raise ValueError("%r: remote frames are not a heartbeat" % text)
+    data = bytes.fromhex(payload.replace(".", ""))
+    return can_id, data, extended
+
+
+class _Reader:
+    """Typed access to one mapping with key paths for error messages."""
+
+    def __init__(self, source: str, warnings: List[str]) -> None:
+        self.source = source
+        self.warnings = warnings
+
+    def fail(self, key: str, problem: str) -> ConfigError:
+        return ConfigError(self.source, key, problem)
+
+    def mapping(self, value: Any, key: str, allow_none: bool = True) -> Mapping[str, Any]:
+        if value is None and allow_none:
+            return {}
+        if not isinstance(value, Mapping):
+            raise self.fail(key, "expected a mapping, got %s %r" % (type(value).__name__, value))
+        return value
+
+    def string(self, value: Any, key: str) -> str:
+        if not isinstance(value, str):
+            raise self.fail(key, "expected a string, got %s %r" % (type(value).__name__, value))
+        return value
+
+    def boolean(self, value: Any, key: str) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(key, "expected true or false, got %s %r" % (type(value).__name__, value))
+        return value
+
+    def integer(self, value: Any, key: str, lo: Optional[int] = None, hi: Optional[int] = None) -> int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.fail(key, "expected an integer, got %s %r" % (type(value).__name__, value))
+        if lo is not None and value < lo or hi is not None and value > hi:
+            raise self.fail(key, "%d out of range %s..%s" % (value, lo, hi))
+        return value
+
+    def number(self, value: Any, key: str, lo: float = 0.0) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(key, "expected a number, got %s %r" % (type(value).__name__, value))
+        value = float(value)
+        if not math.isfinite(value) or value < lo:
+            raise self.fail(key, "%r must be a finite number >= %g" % (value, lo))
+        return value
+
+    def unknown(self, mapping: Mapping[str, Any], known: Iterable[str], prefix: str) -> None:
+        known = set(known)
+        for k in mapping:
+            if k not in known:
+                self.warnings.append("%s: unknown option %s%s ignored" % (self.source, prefix, k))
+
+
+# --------------------------------------------------------------------------
+# layers
+
+
+def _load_bus(r: _Reader, params: Mapping[str, Any]) -> BusConfig:
+    bus = r.mapping(params.get("bus"), "bus")
+    r.unknown(bus, _BUS_KEYS, "bus/")
+    device = r.string(bus.get("device", "can0"), "bus/device")
+    if not device or (device.startswith("virtual:") and len(device) == len("virtual:")):
+        raise r.fail("bus/device", "empty device name")
+    loopback = r.boolean(bus.get("loopback", False), "bus/loopback")
+    plugin = r.string(bus.get("driver_plugin", _SOCKETCAN_PLUGIN), "bus/driver_plugin")
+    if plugin != _SOCKETCAN_PLUGIN:
+        r.warnings.append("%s: bus/driver_plugin %r ignored: this driver talks SocketCAN (or python-can "
+                          "'virtual:' devices)" % (r.source, plugin))
+    allocator = r.string(bus.get("master_allocator", BusConfig.master_allocator), "bus/master_allocator")
+    return BusConfig(device, loopback, plugin, allocator)
+
+
+def _load_sync(r: _Reader, params: Mapping[str, Any]) -> SyncConfig:
+    sync = r.mapping(params.get("sync"), "sync")
+    r.unknown(sync, _SYNC_KEYS, "sync/")
+    interval = r.number(sync.get("interval_ms", 0), "sync/interval_ms")
+    update = r.number(sync.get("update_ms", interval), "sync/update_ms")
+    if update == 0:
+        raise r.fail("sync/update_ms", "must be set (> 0) when sync/interval_ms is 0 or absent")
+    overflow = r.integer(sync.get("overflow", 0), "sync/overflow", 0, 240)
+    if overflow == 1:
+        raise r.fail("sync/overflow", "1 is not allowed by CiA 301: use 0 (no counter) or 2..240")
+    return SyncConfig(interval, update, overflow)
+
+
+def _load_heartbeat(r: _Reader, params: Mapping[str, Any]) -> Optional[HeartbeatConfig]:
+    if params.get("heartbeat") is None:
+        return None
+    hb = r.mapping(params["heartbeat"], "heartbeat")
+    r.unknown(hb, _HEARTBEAT_KEYS, "heartbeat/")
+    if not hb:
+        return None
+    if "rate" not in hb:
+        raise r.fail("heartbeat/rate", "required when heartbeat is given")
+    if "msg" not in hb:
+        raise r.fail("heartbeat/msg", "required when heartbeat is given")
+    rate = r.number(hb["rate"], "heartbeat/rate")
+    if rate <= 0:
+        raise r.fail("heartbeat/rate", "must be > 0 Hz")
+    msg = r.string(hb["msg"], "heartbeat/msg")
+    try:
+        can_id, data, ext = parse_cansend(msg)
+    except ValueError as e:
+        raise r.fail("heartbeat/msg", str(e)) from None
+    return HeartbeatConfig(rate, can_id, data, ext, msg)
+
+
+def _overlay(r: _Reader, value: Any, key: str) -> Tuple[Tuple[ObjectKey, str, str], ...]:
+    overlay = r.mapping(value, key)
+    out = []
+    for k, v in overlay.items():
+        sub = "%s/%s" % (key, k)
+        try:
+            okey = parse_object_key(k)
+        except ObjectStringError as e:
+            raise r.fail(sub, str(e)) from None
+        if isinstance(v, bool) or not isinstance(v, (str, int, float)):
+            raise r.fail(sub, "expected a value string like \"1000\" or \"0x7F0064\", got %r" % (v,))
+        out.append((okey, str(v).strip(), str(k)))
+    return tuple(out)
+
+
+def _resolve_eds(r: _Reader, node: Mapping[str, Any], prefix: str, resolver: Optional[Resolver]) -> Tuple[str, Optional[str]]:
+    if "eds_file" not in node:
+        raise r.fail(prefix + "eds_file", "required (path to the node's EDS/DCF file)")
+    eds_file = os.path.expanduser(r.string(node["eds_file"], prefix + "eds_file"))
+    pkg = node.get("eds_pkg")
+    if pkg is not None:
+        pkg = r.string(pkg, prefix + "eds_pkg")
+    if os.path.isabs(eds_file):
+        path = eds_file
+    elif pkg:
+        if resolver is None:
+            raise r.fail(prefix + "eds_pkg", "cannot resolve package %r: no package resolver given" % pkg)
+        try:
+            base = resolver(pkg)
+        except Exception as e:  # rospkg raises its own ResourceNotFound
+            raise r.fail(prefix + "eds_pkg", "package %r not found (%s)" % (pkg, e)) from None
+        path = os.path.join(base, eds_file)
+    else:
+        path = os.path.abspath(eds_file)
+    if not os.path.isfile(path):
+        raise r.fail(prefix + "eds_file", "file %r not found" % path)
+    return path, pkg
+
+
+def _units(r: _Reader, node: Mapping[str, Any], prefix: str) -> Dict[str, Expression]:
+    out = {}
+    for k in _UNIT_KEYS:
+        text = node.get(k, DEFAULT_UNITS[k])
+        try:
+            out[k] = compile_expression(text)
+        except UnitExpressionError as e:
+            raise r.fail(prefix + k, str(e)) from None
+    for k in ("pos_to_device", "vel_to_device", "eff_to_device"):
+        for v in out[k].variables:
+            if v not in ("pos", "vel", "eff") and not v.startswith("obj"):
+                raise r.fail(prefix + k, "unexpected variable %s" % v)
+    return out
+
+
+def _publish(r: _Reader, value: Any, key: str, name: str) -> Tuple[PublishConfig, ...]:
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, (list, tuple)):
+        raise r.fail(key, "expected a list of object strings like [\"6041\", \"1003sub0!\"], got %r" % (value,))
+    out = []
+    for i, spec in enumerate(value):
+        try:
+            okey, force = parse_publish_spec(spec)
+        except ObjectStringError as e:
+            raise r.fail("%s[%d]" % (key, i), str(e)) from None
+        text = str(spec).strip().rstrip("!")
+        out.append(PublishConfig(str(spec), okey, force, "%s_%s" % (name, text)))
+    return tuple(out)
+
+
+def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolver]) -> Tuple[NodeConfig, ...]:
+    defaults = r.mapping(params.get("defaults"), "defaults")
+    if "nodes" not in params or params["nodes"] in (None, {}, []):
+        raise r.fail("nodes", "required: at least one node with id and eds_file")
+    raw = params["nodes"]
+    entries: List[Tuple[str, str, Any]] = []  # (key for messages, default name, value)
+    if isinstance(raw, Mapping):
+        for k, v in raw.items():
+            entries.append(("nodes/%s/" % k, str(k), v))
+    elif isinstance(raw, (list, tuple)):
+        for i, v in enumerate(raw):
+            entries.append(("nodes[%d]/" % i, "", v))
+    else:
+        raise r.fail("nodes", "expected a mapping or a list of nodes, got %s" % type(raw).__name__)
+
+    nodes: List[NodeConfig] = []
+    for prefix, default_name, value in entries:
+        if value is None:
+            # ros.yaml's "node2:  # ..." placeholder: nothing is configured there.
+            r.warnings.append("%s: %s is empty and ignored" % (r.source, prefix.rstrip("/")))
+            continue
+        node = merge_params(defaults, r.mapping(value, prefix.rstrip("/"), allow_none=False))
+        r.unknown(node, _NODE_KEYS, prefix)
+        if "id" not in node:
+            raise r.fail(prefix + "id", "required (CANopen node-ID 1..127)")
+        node_id = r.integer(node["id"], prefix + "id", 1, 127)
+        if "name" in node:
+            name = r.string(node["name"], prefix + "name")
+        elif default_name:
+            name = default_name
+        else:
+            raise r.fail(prefix + "name", "required for nodes given as a list")
+        if not name:
+            raise r.fail(prefix + "name", "must not be empty")
+        path, pkg = _resolve_eds(r, node, prefix, resolver)
+        switching = r.integer(node.get("switching_state", 5), prefix + "switching_state")
+        if switching not in SWITCHING_STATES:
+            raise r.fail(prefix + "switching_state", "%d is not a state for mode switching; use one of %s"
+                         % (switching, ", ".join("%d (%s)" % kv for kv in sorted(SWITCHING_STATES.items()))))
+        units = _units(r, node, prefix)
+        overlay = _overlay(r, node.get("dcf_overlay"), prefix + "dcf_overlay")
+        publish = _publish(r, node.get("publish"), prefix + "publish", name)
+        allocator = r.string(node.get("motor_allocator", NodeConfig.motor_allocator), prefix + "motor_allocator")
+        extra = {k: v for k, v in node.items() if k not in _NODE_KEYS}
+        if "motor_layer" in node:
+            extra["motor_layer"] = node["motor_layer"]
+            r.warnings.append("%s: %smotor_layer is accepted and not used" % (r.source, prefix))
+        nodes.append(NodeConfig(
+            key=prefix.split("/")[1] if prefix.startswith("nodes/") else name,
+            node_id=node_id, name=name, eds_file=path, eds_pkg=pkg, dcf_overlay=overlay,
+            switching_state=switching, publish=publish, motor_allocator=allocator,
+            extra=MappingProxyType(extra), **units))
+    if not nodes:
+        raise r.fail("nodes", "no node configured")
+    seen_ids: Dict[int, str] = {}
+    seen_names: Dict[str, str] = {}
+    for n in nodes:
+        if n.node_id in seen_ids:
+            raise r.fail("nodes/%s/id" % n.key, "node-ID %d is also used by %s" % (n.node_id, seen_ids[n.node_id]))
+        if n.name in seen_names:
+            raise r.fail("nodes/%s/name" % n.key, "name %r is also used by %s" % (n.name, seen_names[n.name]))
+        seen_ids[n.node_id] = n.key
+        seen_names[n.name] = n.key
+    return tuple(nodes)
+
+
+def _load_controllers(r: _Reader, params: Mapping[str, Any], joints: Sequence[str]) -> Tuple[ControllerConfig, ...]:
+    out = []
+    for name, value in params.items():
+        if name in _TOP_KEYS or not isinstance(value, Mapping) or "type" not in value:
+            continue
+        ctype = r.string(value["type"], name + "/type")
+        if "/" not in ctype:
+            raise r.fail(name + "/type", "expected 'package/Class' like position_controllers/JointPositionController")
+        if "joint" in value and "joints" in value:
+            raise r.fail(name, "give either joint or joints, not both")
+        group = "joints" in value
+        if "joint" in value:
+            cjoints: Tuple[str, ...] = (r.string(value["joint"], name + "/joint"),)
+        elif group:
+            lst = value["joints"]
+            if not isinstance(lst, (list, tuple)) or not lst:
+                raise r.fail(name + "/joints", "expected a non-empty list of joint names")
+            cjoints = tuple(r.string(j, "%s/joints[%d]" % (name, i)) for i, j in enumerate(lst))
+        elif ctype.startswith("joint_state_controller/"):
+            cjoints = tuple(joints)
+        else:
+            raise r.fail(name + "/joint", "required for controller type %s (or joints: [...])" % ctype)
+        for j in cjoints:
+            if j not in joints:
+                r.warnings.append("%s: %s: joint %r is not a node on this bus" % (r.source, name, j))
+        rate = None
+        if "publish_rate" in value:
+            rate = r.number(value["publish_rate"], name + "/publish_rate")
+            if rate <= 0:
+                raise r.fail(name + "/publish_rate", "must be > 0 Hz")
+        mode = None
+        if "required_drive_mode" in value:
+            mode = r.integer(value["required_drive_mode"], name + "/required_drive_mode")
+            if mode not in SUPPORTED_DRIVE_MODES:
+                raise r.fail(name + "/required_drive_mode", "mode %d is not supported; use one of %s" % (
+                    mode, ", ".join("%d (%s)" % kv for kv in sorted(SUPPORTED_DRIVE_MODES.items()))))
+        constraints = MappingProxyType(dict(r.mapping(value.get("constraints"), name + "/constraints")))
+        extra = MappingProxyType({k: v for k, v in value.items() if k not in _CONTROLLER_KEYS})
+        out.append(ControllerConfig(name, ctype, cjoints, rate, mode, constraints, extra, group))
+    return tuple(out)
+
+
+def load_config(params: Mapping[str, Any], source: str, resolver: Optional[Resolver] = None) -> DriverConfig:
+    """Read the node's parameter tree; raise ConfigError on the first mistake.
+
+    source names where params came from (a file or a parameter namespace)
+    and appears in every message. resolver maps a package name to its path
+    (the node passes one built on rospkg); eds_file may also be absolute.
+    """
+    warnings: List[str] = []
+    r = _Reader(source, warnings)
+    params = r.mapping(params, "(top level)", allow_none=False)
+    bus = _load_bus(r, params)
+    sync = _load_sync(r, params)
+    heartbeat = _load_heartbeat(r, params)
+    nodes = _load_nodes(r, params, resolver)
+    node_names = [n.name for n in nodes]
+
+    joint_names: Tuple[str, ...] = tuple(node_names)
+    if "joint_names" in params:
+        lst = params["joint_names"]
+        if not isinstance(lst, (list, tuple)):
+            raise r.fail("joint_names", "expected a list of joint names, got %r" % (lst,))
+        joint_names = tuple(r.string(j, "joint_names[%d]" % i) for i, j in enumerate(lst))
+        for j in joint_names:
+            if j not in node_names:
+                warnings.append("%s: joint_names: %r is not a node's name on this bus" % (source, j))
+    controllers = _load_controllers(r, params, node_names)
+    for k, v in params.items():
+        if k in _TOP_KEYS:
+            continue
+        if isinstance(v, Mapping) and "type" in v:
+            continue
+        warnings.append("%s: unknown option %s ignored" % (source, k))
+    return DriverConfig(source, bus, sync, heartbeat, nodes, joint_names, controllers, tuple(warnings))

@@ -1,0 +1,248 @@
+"""What init writes to a node, worked out once at start from its DCF/EDS.
+
+* the configuration the DCF carries (its ParameterValues) as ready-to-send
+  SDO payloads, with ``dcf_overlay`` on top;
+* the PDO mapping: the DCF's own when it already carries every object the
+  driver exchanges each cycle, otherwise one the driver lays out itself.
+
+Everything is checked here, before any frame is sent, so a bad overlay value
+or an object missing from the dictionary stops the node at start.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+
+from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary
+from canopen.objectdictionary import datatypes as dt
+
+from ..config import ConfigError, NodeConfig, SyncConfig
+from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, encode_value,
+                       find_variable, is_writable)
+
+# Objects the driver writes in its RPDOs every cycle, and reads from TPDOs.
+CONTROLWORD = ObjectKey(0x6040)
+MODES_OF_OPERATION = ObjectKey(0x6060)
+TARGET_POSITION = ObjectKey(0x607A)
+TARGET_VELOCITY = ObjectKey(0x60FF)
+TARGET_TORQUE = ObjectKey(0x6071)
+STATUSWORD = ObjectKey(0x6041)
+MODES_DISPLAY = ObjectKey(0x6061)
+POSITION_ACTUAL = ObjectKey(0x6064)
+VELOCITY_ACTUAL = ObjectKey(0x606C)
+HOMING_METHOD = ObjectKey(0x6098)
+PRODUCER_HEARTBEAT = ObjectKey(0x1017)
+
+RX_REQUIRED = (CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE)
+TX_REQUIRED = (STATUSWORD, MODES_DISPLAY, POSITION_ACTUAL, VELOCITY_ACTUAL)
+DRIVER_OWNED = frozenset(RX_REQUIRED)  # set_object refuses these: the cycle owns them
+
+RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
+PDO_COUNT = 4
+_RX_COB_BASE = (0x200, 0x300, 0x400, 0x500)
+_TX_COB_BASE = (0x180, 0x280, 0x380, 0x480)
+_PDO_NOT_VALID = 0x80000000
+
+# Parameter values init must not write although the DCF carries them:
+# PDO records (configured separately, in the safe order), store/restore
+# (writing would save to flash), error history (writing clears it), SDO
+# server parameters (would cut the line init talks over), program control.
+_SKIP_RANGES = ((0x1400, 0x1BFF), (0x1010, 0x1011), (0x1003, 0x1003),
+                (0x1200, 0x12FF), (0x1F50, 0x1FFF))
+
+
+@dataclass(frozen=True)
+class SdoWrite:
+    key: ObjectKey
+    data: bytes
+    text: str          # for messages: "0x6098 sub 0 = -3 (DCF)"
+
+
+@dataclass(frozen=True)
+class MapPlan:
+    number: int        # 1..4
+    cob_id: int
+    enabled: bool
+    trans_type: int
+    event_timer: Optional[int]
+    rtr_allowed: bool
+    entries: Tuple[Tuple[ObjectKey, int], ...]  # (object, bits)
+
+
+@dataclass(frozen=True)
+class NodePlan:
+    writes: Tuple[SdoWrite, ...]
+    rx: Tuple[MapPlan, ...]
+    tx: Tuple[MapPlan, ...]
+    source: str        # "dcf" or "driver": where the PDO mapping comes from
+
+    def rx_keys(self) -> List[ObjectKey]:
+        return [k for m in self.rx if m.enabled for k, _ in m.entries]
+
+    def tx_keys(self) -> List[ObjectKey]:
+        return [k for m in self.tx if m.enabled for k, _ in m.entries]
+
+
+def _variables(od: ObjectDictionary) -> Iterable[ODVariable]:
+    for obj in od.values():
+        if isinstance(obj, ODVariable):
+            yield obj
+        elif isinstance(obj, (ODRecord, ODArray)):
+            for sub in obj.values():
+                yield sub
+
+
+def _skipped(index: int) -> bool:
+    return any(lo <= index <= hi for lo, hi in _SKIP_RANGES)
+
+
+_NODEID_RE = re.compile(r"^\$NODEID\s*\+\s*(\S+)$|^(\S+)\s*\+\s*\$NODEID$", re.IGNORECASE)
+
+
+def _overlay_value(var: ODVariable, text: str, node_id: int):
+    """Encode an overlay value; ``$NODEID+0x200`` is allowed as in EDS files."""
+    m = _NODEID_RE.match(text.strip())
+    if m:
+        base = encode_value(var, m.group(1) or m.group(2))
+        return encode_value(var, str(base + node_id))
+    return encode_value(var, text)
+
+
+def _pdo_value(od: ObjectDictionary, index: int, sub: int) -> Optional[int]:
+    try:
+        var = od[index][sub]
+    except KeyError:
+        return None
+    value = var.value if var.value is not None else var.default
+    return value if isinstance(value, int) else None
+
+
+def dcf_maps(od: ObjectDictionary, rx: bool) -> List[MapPlan]:
+    """The PDO configuration a DCF carries (ParameterValue, else default)."""
+    comm, mapping = (RPDO_COMM, RPDO_MAP) if rx else (TPDO_COMM, TPDO_MAP)
+    out = []
+    for n in range(PDO_COUNT):
+        cob = _pdo_value(od, comm + n, 1)
+        count = _pdo_value(od, mapping + n, 0)
+        if cob is None or count is None:
+            continue
+        entries = []
+        for sub in range(1, count + 1):
+            raw = _pdo_value(od, mapping + n, sub) or 0
+            index, subindex, bits = raw >> 16, (raw >> 8) & 0xFF, raw & 0xFF
+            if index and bits:
+                entries.append((ObjectKey(index, subindex), bits))
+        trans = _pdo_value(od, comm + n, 2)
+        out.append(MapPlan(n + 1, cob & 0x1FFFFFFF, not cob & _PDO_NOT_VALID,
+                           255 if trans is None else trans, None, not cob & 0x40000000, tuple(entries)))
+    return out
+
+
+def _own_maps(od: ObjectDictionary, node_id: int, keys: Sequence[ObjectKey], rx: bool,
+              trans_type: int, event_timer: Optional[int]) -> List[MapPlan]:
+    """First-fit packing of keys into at most four 8-byte PDOs."""
+    bins: List[List[Tuple[ObjectKey, int]]] = []
+    for key in keys:
+        bits = len(find_variable(od, key))
+        for b in bins:
+            if sum(x for _, x in b) + bits <= 64:
+                b.append((key, bits))
+                break
+        else:
+            bins.append([(key, bits)])
+    if len(bins) > PDO_COUNT:
+        raise ValueError("%d objects do not fit into %d %sPDOs" % (len(keys), PDO_COUNT, "R" if rx else "T"))
+    bases = _RX_COB_BASE if rx else _TX_COB_BASE
+    out = []
+    for n in range(PDO_COUNT):
+        entries = tuple(bins[n]) if n < len(bins) else ()
+        out.append(MapPlan(n + 1, bases[n] + node_id, bool(entries), trans_type,
+                           None if rx else event_timer, not rx, entries))
+    return out
+
+
+def _timing(maps: List[MapPlan], sync: SyncConfig, rx: bool) -> List[MapPlan]:
+    """With SYNC, PDOs are synchronous (type 1); without it, event driven
+    (255) and TPDOs sent every update period by the drive's event timer."""
+    out = []
+    for m in maps:
+        if sync.interval_ms > 0:
+            trans, timer = (1, None) if not 1 <= m.trans_type <= 240 else (m.trans_type, None)
+        else:
+            trans, timer = 255, None if rx else max(1, int(round(sync.update_ms)))
+        out.append(MapPlan(m.number, m.cob_id, m.enabled, trans, timer, m.rtr_allowed, m.entries))
+    return out
+
+
+def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: str) -> NodePlan:
+    """Everything init will write to this node; ConfigError on any problem."""
+    prefix = "nodes/%s/" % cfg.key
+
+    def fail(key: str, problem: str) -> ConfigError:
+        return ConfigError(source, prefix + key, problem)
+
+    for key in RX_REQUIRED + TX_REQUIRED:
+        try:
+            find_variable(od, key)
+        except ObjectStringError as e:
+            raise fail("eds_file", "%s: a CiA 402 drive needs object %s (%s)" % (cfg.eds_file, key, e)) from None
+
+    writes: Dict[ObjectKey, SdoWrite] = {}
+    for var in _variables(od):
+        if var.value is None or _skipped(var.index) or not is_writable(var):
+            continue
+        key = ObjectKey(var.index, var.subindex)
+        if key in DRIVER_OWNED or var.data_type in (dt.DOMAIN,):
+            continue
+        try:
+            data = var.encode_raw(var.value)
+        except (ValueError, TypeError, Exception) as e:  # canopen raises struct/Object errors
+            raise fail("eds_file", "%s: ParameterValue of %s cannot be encoded: %s" % (cfg.eds_file, key, e)) from None
+        writes[key] = SdoWrite(key, data, "%s = %s (DCF)" % (key, var.value))
+    for key, text, written in cfg.dcf_overlay:
+        try:
+            var = find_variable(od, key)
+            if not is_writable(var):
+                raise ObjectValueError("object %s is read-only" % key)
+            value = _overlay_value(var, text, cfg.node_id)
+            data = var.encode_raw(value)
+        except (ObjectStringError, ObjectValueError) as e:
+            raise fail("dcf_overlay/" + written, str(e)) from None
+        if key in DRIVER_OWNED:
+            raise fail("dcf_overlay/" + written, "object %s is commanded by the driver every cycle" % key)
+        writes.pop(key, None)
+        writes[key] = SdoWrite(key, data, "%s = %s (dcf_overlay)" % (key, text))
+
+    tx_needed: List[ObjectKey] = list(TX_REQUIRED)
+    for name in ("pos_from_device", "vel_from_device", "eff_from_device",
+                 "pos_to_device", "vel_to_device", "eff_to_device"):
+        for key in getattr(cfg, name).objects:
+            try:
+                var = find_variable(od, key)
+            except ObjectStringError as e:
+                raise fail(name, str(e)) from None
+            if not var.pdo_mappable and name.endswith("from_device"):
+                raise fail(name, "object %s cannot be mapped to a TPDO" % key)
+            if var.pdo_mappable and key not in tx_needed:
+                tx_needed.append(key)
+    for pub in cfg.publish:
+        try:
+            find_variable(od, pub.key)
+        except ObjectStringError as e:
+            raise fail("publish", "%s: %s" % (pub.spec, e)) from None
+
+    rx_dcf = dcf_maps(od, rx=True)
+    tx_dcf = dcf_maps(od, rx=False)
+    rx_have = {k for m in rx_dcf if m.enabled for k, _ in m.entries}
+    tx_have = {k for m in tx_dcf if m.enabled for k, _ in m.entries}
+    if set(RX_REQUIRED) <= rx_have and set(tx_needed) <= tx_have:
+        rx, tx, origin = rx_dcf, tx_dcf, "dcf"
+    else:
+        try:
+            rx = _own_maps(od, cfg.node_id, RX_REQUIRED, True, 1, None)
+            tx = _own_maps(od, cfg.node_id, tx_needed, False, 1, None)
+        except ValueError as e:
+            raise fail("eds_file", str(e)) from None
+        origin = "driver"
+    return NodePlan(tuple(writes.values()), tuple(_timing(rx, sync, True)), tuple(_timing(tx, sync, False)), origin)

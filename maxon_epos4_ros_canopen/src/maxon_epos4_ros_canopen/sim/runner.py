@@ -1,0 +1,259 @@
+"""Run many virtual EPOS4 nodes on one python-can bus, in one thread.
+
+One loop receives frames, routes them by COB-ID to the nodes and advances
+all nodes every ``tick`` seconds; SYNC advances them too before TPDOs are
+sampled.  Calls from other threads (fault injection, inspection) go through
+``call()`` so that only the loop thread ever touches a node or the bus.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Tuple
+
+import can
+
+from .drive import VirtualEpos4
+from .objects import load_od
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class NodeConfig:
+    """One simulated node: id, its DCF/EDS and an optional hard stop (increments)."""
+
+    node_id: int
+    dcf: str
+    hard_stop: Optional[Tuple[float, float]] = None
+
+
+def parse_node_spec(spec: str) -> NodeConfig:
+    """``ID:PATH`` or ``ID:PATH:MIN:MAX`` (hard stop in increments) -> NodeConfig."""
+    parts = spec.split(":")
+    try:
+        node_id = int(parts[0], 0)
+    except ValueError:
+        raise ValueError("node spec %r: expected ID:PATH[:MIN:MAX]" % spec) from None
+    if len(parts) not in (2, 4) or not parts[1]:
+        raise ValueError("node spec %r: expected ID:PATH[:MIN:MAX]" % spec)
+    if not 1 <= node_id <= 127:
+        raise ValueError("node id %d outside 1..127" % node_id)
+    hard_stop = None
+    if len(parts) == 4:
+        hard_stop = (float(parts[2]), float(parts[3]))
+        if hard_stop[0] >= hard_stop[1]:
+            raise ValueError("hard stop %r: MIN must be below MAX" % spec)
+    return NodeConfig(node_id, parts[1], hard_stop)
+
+
+class Simulator:
+    """Virtual EPOS4 nodes on ``bus``."""
+
+    def __init__(self, bus: can.BusABC, nodes: List[NodeConfig], tick: float = 0.005,
+                 clock: Callable[[], float] = time.monotonic):
+        ids = [n.node_id for n in nodes]
+        if len(set(ids)) != len(ids):
+            raise ValueError("node ids must be unique: %s" % ids)
+        self.bus = bus
+        self.tick_period = tick
+        self.clock = clock
+        self.frames_in = 0
+        self.frames_out = 0
+        self.busy_time = 0.0
+        self.cpu_seconds = 0.0  # CPU time of the loop thread, for benchmarks
+        self._cpu0 = 0.0
+        self._calls: "queue.Queue[Tuple[Callable[[], Any], dict]]" = queue.Queue()
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+        self._routes: Dict[int, List[VirtualEpos4]] = {}
+        self._sync_routes: Dict[int, List[VirtualEpos4]] = {}
+        now = clock()
+        self.nodes: Dict[int, VirtualEpos4] = {}
+        for cfg in nodes:
+            od = load_od(cfg.dcf, cfg.node_id)
+            self.nodes[cfg.node_id] = VirtualEpos4(cfg.node_id, od, self._transmit, now,
+                                                   hard_stop=cfg.hard_stop,
+                                                   on_routes_changed=self._mark_routes)
+        self._routes_dirty = True
+
+    # --------------------------------------------------------------- bus
+    def _transmit(self, cob_id: int, data: bytes, remote: bool) -> None:
+        msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False,
+                          is_remote_frame=remote, dlc=len(data) if not remote else 0)
+        try:
+            self.bus.send(msg)
+            self.frames_out += 1
+        except can.CanError as exc:  # bus full or down: the real drive would retry
+            log.warning("send 0x%03X failed: %s", cob_id, exc)
+
+    def _mark_routes(self) -> None:
+        self._routes_dirty = True
+
+    def _rebuild_routes(self) -> None:
+        routes: Dict[int, List[VirtualEpos4]] = {}
+        syncs: Dict[int, List[VirtualEpos4]] = {}
+        for node in self.nodes.values():
+            for cob in node.cob_ids():
+                routes.setdefault(cob, []).append(node)
+            syncs.setdefault(node.sync_cob, []).append(node)
+        self._routes, self._sync_routes = routes, syncs
+        self._routes_dirty = False
+
+    def handle(self, msg: can.Message, now: float) -> None:
+        """Route one received frame."""
+        if msg.is_extended_id or msg.is_error_frame:
+            return
+        self.frames_in += 1
+        cob = msg.arbitration_id
+        data = bytes(msg.data)
+        if cob == 0x000:
+            if len(data) == 2:
+                for node in self.nodes.values():
+                    if data[1] in (0, node.node_id):
+                        node.on_nmt(data[0], now)
+        elif cob in self._sync_routes:
+            for node in self._sync_routes[cob]:
+                node.on_sync(now)
+        else:
+            for node in self._routes.get(cob, ()):
+                node.on_frame(cob, data, msg.is_remote_frame, now)
+        if self._routes_dirty:
+            self._rebuild_routes()
+
+    # -------------------------------------------------------------- loop
+    def step(self, timeout: float) -> None:
+        """Receive for up to ``timeout`` s, then tick if due (one loop pass)."""
+        msg = self.bus.recv(timeout=max(0.0, timeout))
+        start = time.perf_counter()
+        now = self.clock()
+        if self._routes_dirty:
+            self._rebuild_routes()
+        burst = 0
+        while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
+            self.handle(msg, now)
+            burst += 1
+            msg = self.bus.recv(timeout=0.0) if burst < 256 else None
+            if msg is not None:
+                now = self.clock()
+        while not self._calls.empty():
+            fn, box = self._calls.get_nowait()
+            try:
+                box["result"] = fn()
+            except Exception as exc:  # returned to the caller, never kills the loop
+                box["error"] = exc
+            box["done"].set()
+        if now >= self._next_tick:
+            recent = now - 0.5 * self.tick_period  # nodes a SYNC just advanced can wait
+            for node in self.nodes.values():
+                if node.t < recent:
+                    node.tick(now)
+            self._next_tick = max(self._next_tick + self.tick_period, now)
+        self.busy_time += time.perf_counter() - start
+        self.cpu_seconds = time.thread_time() - self._cpu0
+
+    def run(self) -> None:
+        """Serve until stop() (blocks)."""
+        self._next_tick = self.clock()
+        self._cpu0 = time.thread_time()
+        self._rebuild_routes()
+        while not self._stop.is_set():
+            try:
+                self.step(self._next_tick - self.clock())
+            except Exception:  # keep serving the other nodes
+                log.exception("virtual EPOS4 loop error")
+
+    def start(self) -> "Simulator":
+        self._thread = threading.Thread(target=self.run, name="virtual_epos4", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+
+    def call(self, fn: Callable[[], Any], timeout: float = 5.0) -> Any:
+        """Run ``fn`` in the loop thread (or now, if no loop runs); return its result."""
+        if self._thread is None or threading.current_thread() is self._thread:
+            return fn()
+        box: Dict[str, Any] = {"done": threading.Event()}
+        self._calls.put((fn, box))
+        if not box["done"].wait(timeout):
+            raise TimeoutError("simulator loop did not answer")
+        if "error" in box:
+            raise box["error"]
+        return box.get("result")
+
+    def inject_fault(self, node_id: int, fault: str, error_code: int = 0,
+                     duration: float = 0.0) -> str:
+        """Fault injection for tests and the ROS service; raises ValueError on bad input."""
+        node = self.nodes.get(node_id)
+        if node is None:
+            raise ValueError("no simulated node %d (have %s)" % (node_id, sorted(self.nodes)))
+        return self.call(lambda: node.inject(fault, self.clock(), error_code, duration))
+
+    def read(self, node_id: int, index: int, sub: int = 0) -> Any:
+        """Value of an object of a node, read in the loop thread (for tests)."""
+        return self.call(lambda: self.nodes[node_id].store.get(index, sub, None))
+
+
+def open_bus(device: str) -> can.BusABC:
+    """``vcan0``/``can0`` -> SocketCAN; ``virtual:NAME`` -> python-can's in-process bus."""
+    if device.startswith("virtual:"):
+        return can.Bus(interface="virtual", channel=device[len("virtual:"):])
+    if not device or ":" in device:
+        raise ValueError("device %r: expected a SocketCAN interface or virtual:NAME" % device)
+    return can.Bus(interface="socketcan", channel=device)
+
+
+def node_configs_from_param(value: Any, config_dir: str,
+                            find_package: Optional[Callable[[str], str]] = None) -> List[NodeConfig]:
+    """The ``nodes`` parameter of the ROS node as NodeConfigs.
+
+    Either a string of ``ID:DCF[:MIN:MAX]`` separated by spaces (DCF relative
+    to ``config_dir``) or a list of dicts ``{id, eds_file, eds_pkg?, hard_stop?}``
+    (``eds_file`` relative to the package ``eds_pkg`` when given, else to
+    ``config_dir``).  Raises ValueError with the offending entry.
+    """
+    import os
+
+    def resolve(path: str, pkg: Optional[str] = None) -> str:
+        if pkg:
+            if find_package is None:
+                raise ValueError("eds_pkg %r given but no package lookup available" % pkg)
+            return os.path.join(find_package(pkg), path)
+        return path if os.path.isabs(path) else os.path.join(config_dir, path)
+
+    configs: List[NodeConfig] = []
+    if isinstance(value, str):
+        for spec in value.split():
+            cfg = parse_node_spec(spec)
+            cfg.dcf = resolve(cfg.dcf)
+            configs.append(cfg)
+    elif isinstance(value, list):
+        for entry in value:
+            if not isinstance(entry, dict) or "id" not in entry or "eds_file" not in entry:
+                raise ValueError("nodes entry %r: expected {id, eds_file, eds_pkg?, hard_stop?}" % (entry,))
+            node_id = entry["id"]
+            if not isinstance(node_id, int) or not 1 <= node_id <= 127:
+                raise ValueError("nodes entry %r: id must be an integer 1..127" % (entry,))
+            hard_stop = entry.get("hard_stop")
+            if hard_stop is not None:
+                if (not isinstance(hard_stop, list) or len(hard_stop) != 2
+                        or not all(isinstance(x, (int, float)) for x in hard_stop) or hard_stop[0] >= hard_stop[1]):
+                    raise ValueError("nodes entry %r: hard_stop must be [min, max] with min < max" % (entry,))
+                hard_stop = (float(hard_stop[0]), float(hard_stop[1]))
+            configs.append(NodeConfig(node_id, resolve(str(entry["eds_file"]), entry.get("eds_pkg")), hard_stop))
+    else:
+        raise ValueError("nodes must be a string 'ID:DCF ...' or a list of {id, eds_file}")
+    if not configs:
+        raise ValueError("nodes is empty")
+    for cfg in configs:
+        if not os.path.isfile(cfg.dcf):
+            raise ValueError("node %d: no such DCF/EDS file %s" % (cfg.node_id, cfg.dcf))
+    return configs

@@ -1,0 +1,185 @@
+"""Helpers for the driver rostests: the user's command lines, an independent
+look at the drives over SDO, and a recorder of the frames on the bus.
+
+Imported by the executable test scripts next to it (not a test itself).
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import threading
+import time
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import can
+import canopen
+import rospy
+from canopen.sdo.exceptions import SdoError
+import yaml
+from sensor_msgs.msg import JointState
+
+CLI_TIMEOUT = 120.0  # user-mode Linux runs ROS tools 6-10x slower than native
+WAIT = 90.0
+
+
+def run(args: Sequence[str], timeout: float = CLI_TIMEOUT) -> subprocess.CompletedProcess:
+    """Run a command line exactly as a user types it (already split by the shell)."""
+    return subprocess.run(list(args), capture_output=True, text=True, timeout=timeout)
+
+
+def rosservice_call(*args: str) -> Dict[str, Any]:
+    """`rosservice call ARGS...`; the YAML answer as a dict (fails the test on a CLI error)."""
+    proc = run(["rosservice", "call"] + list(args))
+    if proc.returncode != 0:
+        raise AssertionError("rosservice call %s failed (%d): %s %s"
+                             % (" ".join(args), proc.returncode, proc.stdout, proc.stderr))
+    answer = yaml.safe_load(proc.stdout)
+    return answer if isinstance(answer, dict) else {"raw": proc.stdout}
+
+
+class Background:
+    """A long-running command (`rostopic pub ...` latches until Ctrl-C)."""
+
+    def __init__(self, args: Sequence[str]) -> None:
+        self.proc = subprocess.Popen(list(args), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class SdoProbe:
+    """Reads a drive's object dictionary over SDO, independently of the driver,
+    so the test sees the drive's own values (the simulator's 0x607A etc.)."""
+
+    def __init__(self, device: str) -> None:
+        self.network = canopen.Network()
+        self.network.connect(interface="socketcan", channel=device)
+        self._nodes: Dict[int, canopen.RemoteNode] = {}
+
+    def _node(self, node_id: int) -> canopen.RemoteNode:
+        if node_id not in self._nodes:
+            node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
+            node.sdo.RESPONSE_TIMEOUT = 2.0
+            self.network.add_node(node)
+            self._nodes[node_id] = node
+        return self._nodes[node_id]
+
+    def read(self, node_id: int, index: int, subindex: int = 0, signed: bool = False) -> int:
+        last: Optional[Exception] = None
+        for _ in range(3):  # the driver may be using the same SDO channel a moment
+            try:
+                data = self._node(node_id).sdo.upload(index, subindex)
+                return int.from_bytes(data, "little", signed=signed)
+            except (SdoError, can.CanError) as exc:
+                last = exc
+                time.sleep(0.5)
+        raise AssertionError("SDO read of node %d 0x%04X/%d failed: %s" % (node_id, index, subindex, last))
+
+    def close(self) -> None:
+        self.network.disconnect()
+
+
+class BusRecorder:
+    """Keeps every frame seen on the bus between start() and stop()."""
+
+    def __init__(self, device: str) -> None:
+        self.bus = can.Bus(interface="socketcan", channel=device)
+        self.frames: List[can.Message] = []
+        self._lock = threading.Lock()
+        self._running = False
+        self._thread: Optional[threading.Thread] = None
+
+    def start(self) -> None:
+        with self._lock:
+            self.frames = []
+        self._running = True
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while self._running:
+            msg = self.bus.recv(timeout=0.2)
+            if msg is not None:
+                with self._lock:
+                    self.frames.append(msg)
+
+    def stop(self) -> List[can.Message]:
+        self._running = False
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        with self._lock:
+            return list(self.frames)
+
+    def close(self) -> None:
+        self._running = False
+        self.bus.shutdown()
+
+
+class JointStates:
+    """Latest /maxon/joint_states message."""
+
+    def __init__(self, topic: str = "/maxon/joint_states") -> None:
+        self.msg: Optional[JointState] = None
+        self._sub = rospy.Subscriber(topic, JointState, self._cb, queue_size=1)
+
+    def _cb(self, msg: JointState) -> None:
+        self.msg = msg
+
+    def value(self, joint: str, field: str = "position") -> Optional[float]:
+        msg = self.msg
+        if msg is None or joint not in msg.name:
+            return None
+        values = getattr(msg, field)
+        return values[msg.name.index(joint)]
+
+    def wait_for(self, joint: str, predicate: Callable[[float], bool], field: str = "position",
+                 timeout: float = WAIT) -> Optional[float]:
+        deadline = time.monotonic() + timeout
+        value = None
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            value = self.value(joint, field)
+            if value is not None and predicate(value):
+                return value
+            time.sleep(0.1)
+        raise AssertionError("joint_states %s.%s never met the condition; last value %r" % (joint, field, value))
+
+
+def wait_until(condition: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return
+        time.sleep(0.2)
+    raise AssertionError("timed out waiting for " + what)
+
+
+def operation_enabled(statusword: int) -> bool:
+    # CiA 402: state bits 0-3, 5, 6 == 0b0100111 in Operation enabled
+    return statusword & 0x6F == 0x27
+
+
+def controllers_by_name(answer: Dict[str, Any]) -> Dict[str, Dict[str, Any]]:
+    return {c["name"]: c for c in answer.get("controller") or []}
+
+
+def diagnostic_values(joint: str) -> Dict[str, str]:
+    """Key/values of the joint's status on /diagnostics (empty when absent)."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    try:
+        msg = rospy.wait_for_message("/diagnostics", DiagnosticArray, timeout=10.0)
+    except rospy.ROSException:
+        return {}
+    for status in msg.status:
+        if status.name.endswith(joint):
+            return {v.key: v.value for v in status.values}
+    return {}
+
+
+def device() -> str:
+    return rospy.get_param("~device", os.environ.get("CAN_DEVICE", "vcan0"))

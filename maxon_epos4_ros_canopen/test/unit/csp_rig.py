@@ -1,0 +1,109 @@
+"""The CSP example in one process, for test_trajectory_csp_sim.py and
+benchmarks/csp_tracking.py (not a test itself): two virtual EPOS4 and the
+driver with the example's YAML files on a private python-can virtual
+channel, the JointTrajectoryController started in its controller manager,
+and a listener keeping every frame on the channel."""
+from __future__ import annotations
+
+import itertools
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional
+
+import can
+import yaml
+
+from maxon_epos4_ros_canopen.config import load_config
+from maxon_epos4_ros_canopen.controllers import ControllerManager
+from maxon_epos4_ros_canopen.driver import Driver
+from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
+from maxon_epos4_ros_canopen.trajectory_controller import JointTrajectoryController
+
+PKG = Path(__file__).resolve().parents[2]
+CONFIG = PKG / "config"
+JOINTS = ["base_link1_joint", "link1_link2_joint"]
+CONTROLLER = "joint_trajectory_controller"
+_channels = itertools.count()
+
+
+class Listener:
+    """Every frame on the channel, with its arrival time (time.monotonic())."""
+
+    def __init__(self, channel: str) -> None:
+        self.bus = can.Bus(interface="virtual", channel=channel)
+        self.frames: List[can.Message] = []
+        self.arrivals: List[float] = []
+        self._run = True
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while self._run:
+            msg = self.bus.recv(timeout=0.05)
+            if msg is not None:
+                self.arrivals.append(time.monotonic())
+                self.frames.append(msg)
+
+    def take(self) -> List[can.Message]:
+        frames, self.frames, self.arrivals = self.frames, [], []
+        return frames
+
+    def close(self) -> None:
+        self._run = False
+        self._thread.join(timeout=2)
+        self.bus.shutdown()
+
+
+class CspRig:
+    def __init__(self, adjust: Optional[Callable[[Dict[str, Any]], None]] = None,
+                 cycle_hook: Optional[Callable[[JointTrajectoryController], None]] = None) -> None:
+        """``adjust(params)`` may change the parameters before loading;
+        ``cycle_hook(controller)`` runs after the controller's cycle each SYNC."""
+        self.channel = "csp_rig_%d_%d" % (os.getpid(), next(_channels))
+        self.simbus = can.Bus(interface="virtual", channel=self.channel)
+        self.sim = Simulator(self.simbus, [NodeConfig(1, str(CONFIG / "epos4_node1.dcf")),
+                                           NodeConfig(2, str(CONFIG / "epos4_node2.dcf"))], tick=0.002).start()
+        self.params: Dict[str, Any] = {}
+        for name in ("canopen_bus_layer.yaml", "controller_2dof_csp.yaml", "node_layer_2dof_csp.yaml"):
+            self.params.update(yaml.safe_load((CONFIG / name).read_text()))
+        self.params["bus"]["device"] = "virtual:" + self.channel
+        if adjust is not None:
+            adjust(self.params)
+        self.driver = Driver(load_config(self.params, "csp_rig", lambda pkg: str(PKG)))
+        self.listener = Listener(self.channel)
+        self.manager: Optional[ControllerManager] = None
+        self.outcomes: List[Any] = []
+        self._hook = cycle_hook
+
+    def start(self) -> JointTrajectoryController:
+        """init, load and start the controller; raises RuntimeError naming what failed."""
+        result = self.driver.init()
+        if not result.success:
+            raise RuntimeError("driver init failed: %s" % result.message)
+        self.manager = ControllerManager(self.driver, list(self.driver.joints), self.params.get)
+        loaded = self.manager.load(CONTROLLER)
+        if not loaded.ok:
+            raise RuntimeError(loaded.message)
+        ctrl = self.manager.get(CONTROLLER)
+        self.driver.add_cycle_callback(lambda driver: self._cycle(ctrl, driver))
+        started = self.manager.switch([CONTROLLER], [])
+        if not started.ok:
+            raise RuntimeError("controller did not start: %s" % started.message)
+        ctrl.on_outcome.append(self.outcomes.append)
+        return ctrl
+
+    def _cycle(self, ctrl: JointTrajectoryController, driver: Driver) -> None:
+        ctrl.cycle(driver)
+        if self._hook is not None:
+            self._hook(ctrl)
+
+    def close(self) -> None:
+        if self.manager is not None:
+            self.manager.stop_all()
+        self.driver.shutdown()
+        self.driver.close()
+        self.listener.close()
+        self.sim.stop()
+        self.simbus.shutdown()

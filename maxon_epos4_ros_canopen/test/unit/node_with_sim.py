@@ -1,0 +1,58 @@
+"""canopen_motor_node and virtual EPOS4 drives in one process, on python-can's
+in-process `virtual` bus: the node's ROS interface can then be tested where
+no vcan0 exists. Used by test_canopen_motor_node.py as a subprocess:
+
+    python node_with_sim.py CHANNEL ID:DCF [ID:DCF ...] -- NODE_ARGS...
+
+The node reads its parameters from the master as usual; its bus/device must
+be `virtual:CHANNEL`. Lines on stdin inject simulator faults:
+`NODE_ID FAULT [ERROR_CODE] [DURATION]`, e.g. `1 emcy 0x8611`.
+"""
+from __future__ import annotations
+
+import importlib.machinery
+import importlib.util
+import sys
+import threading
+from pathlib import Path
+
+import can
+
+from maxon_epos4_ros_canopen.sim.runner import Simulator, parse_node_spec
+
+NODE_SCRIPT = Path(__file__).resolve().parents[2] / "nodes" / "canopen_motor_node"
+
+
+def inject_from_stdin(sim: Simulator) -> None:
+    for line in sys.stdin:
+        words = line.split()
+        if not words:
+            continue
+        try:
+            code = int(words[2], 0) if len(words) > 2 else 0
+            duration = float(words[3]) if len(words) > 3 else 0.0
+            print("inject: %s" % sim.inject_fault(int(words[0]), words[1], code, duration), file=sys.stderr)
+        except (ValueError, IndexError) as exc:
+            print("inject: %r refused: %s" % (line, exc), file=sys.stderr)
+
+
+def main() -> int:
+    split = sys.argv.index("--")
+    channel, specs = sys.argv[1], sys.argv[2:split]
+    sim_bus = can.Bus(interface="virtual", channel=channel)
+    sim = Simulator(sim_bus, [parse_node_spec(s) for s in specs]).start()
+    threading.Thread(target=inject_from_stdin, args=(sim,), daemon=True).start()
+    loader = importlib.machinery.SourceFileLoader("canopen_motor_node", str(NODE_SCRIPT))
+    spec = importlib.util.spec_from_loader("canopen_motor_node", loader)
+    node = importlib.util.module_from_spec(spec)
+    loader.exec_module(node)
+    sys.argv = [str(NODE_SCRIPT)] + sys.argv[split + 1:]
+    try:
+        return node.main()
+    finally:
+        sim.stop()
+        sim_bus.shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

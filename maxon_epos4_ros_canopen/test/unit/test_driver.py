@@ -1,0 +1,497 @@
+"""The driver core against the virtual EPOS4, in one process over python-can's
+virtual bus: frames on the bus and values in the simulated drive's object
+dictionary are what the tests look at."""
+import math
+import os
+import time
+
+import can
+import pytest
+
+from maxon_epos4_ros_canopen.cia402 import State, state_from_statusword
+from maxon_epos4_ros_canopen.config import ConfigError, load_config
+from maxon_epos4_ros_canopen.driver import Driver, JointLimits
+from maxon_epos4_ros_canopen.sim.runner import NodeConfig as SimNode
+from maxon_epos4_ros_canopen.sim.runner import Simulator
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+PKG = os.path.normpath(os.path.join(HERE, "..", ".."))
+REPO = os.path.dirname(PKG)
+DCF1 = os.path.join(PKG, "config", "epos4_node1.dcf")
+DCF1_HM = os.path.join(PKG, "config", "epos4_node1_hm.dcf")
+DCF2 = os.path.join(PKG, "config", "epos4_node2.dcf")
+VENDOR = os.path.join(os.path.dirname(REPO), "shared", "vendor_dcf")
+J1, J2 = "base_link1_joint", "link1_link2_joint"
+SEED_UNITS = {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_device": "vel",
+              "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0"}
+
+
+def until(pred, timeout=5.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return pred()
+
+
+class Rig:
+    """Simulator + driver + a sniffer on one virtual channel."""
+
+    def __init__(self, channel):
+        self.channel = channel
+        self.sim = None
+        self.driver = None
+        self.buses = []
+        self.sniffer = self._bus()
+        self.frames = []
+
+    def _bus(self):
+        bus = can.Bus(interface="virtual", channel=self.channel)
+        self.buses.append(bus)
+        return bus
+
+    def start(self, nodes=((1, DCF1, J1),), defaults=None, sim_dcfs=None, hard_stop=None,
+              **top):
+        sim_nodes = []
+        for i, (nid, dcf, _) in enumerate(nodes):
+            sim_dcf = sim_dcfs[i] if sim_dcfs else dcf
+            sim_nodes.append(SimNode(nid, sim_dcf, hard_stop))
+        self.sim = Simulator(self._bus(), sim_nodes).start()
+        params = {"bus": {"device": "virtual:" + self.channel},
+                  "sync": {"interval_ms": 10, "overflow": 0},
+                  "heartbeat": {"rate": 20, "msg": "77f#05"},
+                  "nodes": {"node%d" % nid: {"id": nid, "name": name, "eds_file": dcf}
+                            for nid, dcf, name in nodes},
+                  "defaults": dict(SEED_UNITS, switching_state=2)}
+        params["defaults"].update(defaults or {})
+        params.update(top)
+        # Generous waits: they only bound how long a failure takes on a loaded host.
+        self.driver = Driver(load_config(params, "test"), homing_timeout=30.0, state_timeout=10.0)
+        return self.driver
+
+    def read(self, index, sub=0, node=1):
+        return self.sim.read(node, index, sub)
+
+    def state(self, node=1):
+        return state_from_statusword(self.read(0x6041, node=node))
+
+    def _collect(self):
+        while True:
+            msg = self.sniffer.recv(0)
+            if msg is None:
+                return self.frames
+            self.frames.append(msg)
+
+    def drain(self):
+        """Forget every frame seen so far."""
+        self._collect()
+        self.frames = []
+
+    def sent(self, cob_id):
+        """Payloads sent to cob_id since the last drain()."""
+        return [bytes(m.data) for m in self._collect() if m.arbitration_id == cob_id]
+
+    def close(self):
+        if self.driver is not None:
+            self.driver.close()
+        if self.sim is not None:
+            self.sim.stop()
+        for bus in self.buses:
+            bus.shutdown()
+
+
+@pytest.fixture
+def rig(request):
+    r = Rig("drv_" + request.node.name)
+    yield r
+    r.close()
+
+
+def ppm_ready(rig, **kw):
+    d = rig.start(**kw)
+    r = d.init()
+    assert r.success, r.message
+    assert d.switch_mode([J1], 1).success
+    return d
+
+
+# ---------------------------------------------------------------- init
+
+def test_init_resets_configures_starts_and_enables(rig):
+    d = rig.start(defaults={"dcf_overlay": {"6065": "2000", "6099sub1": "100", "1017": "100"}})
+    assert rig.state() == State.SWITCH_ON_DISABLED
+    r = d.init()
+    assert r.success, r.message
+    assert rig.state() == State.OPERATION_ENABLED
+    nmt = rig.sent(0x000)
+    assert nmt.index(b"\x81\x01") < nmt.index(b"\x01\x01")  # reset node, then start
+    assert rig.read(0x6065) == 2000 and rig.read(0x6099, 1) == 100 and rig.read(0x1017) == 100
+    assert until(lambda: len(rig.sent(0x080)) > 5)  # SYNC producer, no counter
+    assert all(data == b"" for data in rig.sent(0x080))
+    assert b"\x05" in rig.sent(0x77F)  # heartbeat/msg "77f#05"
+    assert d.init().message == "already initialized"
+    st = d.status()[0]
+    assert st["state"] == "operation_enabled" and st["nmt_state"] == "OPERATIONAL"
+    assert st["pdo_mapping"] == "dcf"
+
+
+def test_ppm_command_moves_the_joint_and_reaches_the_drive(rig):
+    d = ppm_ready(rig)
+    j = d.joints[J1]
+    rig.drain()
+    r = d.set_command(J1, "position", 1000)
+    assert r.success, r.message
+    assert until(lambda: abs(j.position - 1000) < 1)
+    assert rig.read(0x607A) == 1000 and rig.read(0x6061) == 1
+    # new set-point edge (bit 4) with change-set-immediately (bit 5)
+    cws = [int.from_bytes(data[:2], "little") for data in rig.sent(0x201)]
+    assert any(cw & 0x30 == 0x30 for cw in cws)
+
+
+def test_set_and_get_object_round_trips(rig):
+    d = ppm_ready(rig)
+    assert d.set_object(J1, "!!str 6081", "!!str 1000").success
+    assert rig.read(0x6081) == 1000
+    assert d.get_object(J1, "6081").value == "1000"
+    assert d.get_object("node1", "0x6081", True).value == "1000"
+    assert d.set_object(J1, "6099sub02", "12").success
+    assert rig.read(0x6099, 2) == 12
+    assert d.get_object(J1, "6099sub2").value == "12"
+    assert d.get_object(J1, "6099sub02", True).value == "12"
+    # 0x6081 rides in RxPDO 2 of this DCF: the PDO must not write the old value back
+    time.sleep(0.1)
+    assert rig.read(0x6081) == 1000
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda d: d.get_object("no_such_joint", "6081"), "unknown node 'no_such_joint'"),
+    (lambda d: d.get_object(J1, "60g1"), "bad object string"),
+    (lambda d: d.get_object(J1, "5fff"), "0x5FFF is not in the object dictionary"),
+    (lambda d: d.set_object(J1, "6081", "-1"), "out of range"),
+    (lambda d: d.set_object(J1, "6081", "fast"), "not an integer"),
+    (lambda d: d.set_object(J1, "6064", "0"), "read-only"),
+    (lambda d: d.set_object(J1, "6040", "15"), "written by the driver"),
+    (lambda d: d.set_object(J1, "6099sub9", "1"), "no sub-index 9"),
+    (lambda d: d.switch_mode([J1], 4), "mode 4 is not supported"),
+    (lambda d: d.switch_mode(["nobody"], 1), "unknown node"),
+])
+def test_bad_requests_are_answered_and_the_driver_keeps_running(rig, call, match):
+    d = ppm_ready(rig)
+    r = call(d)
+    assert not r.success and match in r.message, r.message
+    assert d.get_object(J1, "6041").success
+    assert d.set_command(J1, "position", 10).success
+    assert until(lambda: rig.read(0x607A) == 10)
+
+
+def test_bad_commands_are_refused_and_never_reach_the_bus(rig):
+    d = rig.start(defaults={"pos_to_device": "pos*1e6"})
+    assert "not initialized" in d.set_command(J1, "position", 1).message
+    assert d.init().success
+    assert "no mode" in d.set_command(J1, "position", 1).message
+    assert d.switch_mode([J1], 1).success
+    before = rig.read(0x607A)
+    rig.drain()
+    for value in (math.nan, math.inf, -math.inf):
+        r = d.set_command(J1, "position", value)
+        assert not r.success and "not a finite number" in r.message
+    assert "outside 0x607A's range" in d.set_command(J1, "position", 1e6).message
+    assert "takes position commands, not velocity" in d.set_command(J1, "velocity", 1).message
+    assert "unknown command kind" in d.set_command(J1, "torque", 1).message
+    d.set_limits(J1, JointLimits(lower=-1.0, upper=1.0))
+    assert "outside the joint limits" in d.set_command(J1, "position", 1.5).message
+    assert "unknown node" in d.set_command("x", "position", 0).message
+    time.sleep(0.05)
+    assert rig.read(0x607A) == before
+    assert all(int.from_bytes(data[:4], "little") == before for data in rig.sent(0x301))
+    assert d.set_command(J1, "position", 0.5).success
+    assert until(lambda: rig.read(0x607A) == 500000)
+
+
+def test_halt_keeps_power_and_recover_does_not_jump(rig):
+    d = ppm_ready(rig)
+    j = d.joints[J1]
+    assert d.set_command(J1, "position", 200000).success
+    assert until(lambda: j.position > 2000)
+    assert d.halt().success
+    assert until(lambda: rig.read(0x6040) & 0x0100)  # halt bit
+    assert until(lambda: rig.read(0x6041) & 0x0400)  # halted: standing still
+    assert rig.state() == State.OPERATION_ENABLED  # powered
+    stopped = rig.read(0x6064)
+    assert stopped < 150000
+    assert until(lambda: abs(j.position - rig.read(0x6064)) < 2)
+    r = d.set_command(J1, "position", 0)
+    assert not r.success and "halted" in r.message
+    assert d.recover().success
+    assert until(lambda: rig.read(0x6040) & 0x0100 == 0)
+    assert rig.state() == State.OPERATION_ENABLED
+    # target = actual (not the stale 200000)
+    assert until(lambda: rig.read(0x607A) == rig.read(0x6064))
+    # (the simulated position loop settles a few dozen increments after standstill)
+    assert abs(rig.read(0x607A) - stopped) < 500
+    time.sleep(0.2)
+    assert abs(rig.read(0x6064) - rig.read(0x607A)) < 50
+
+
+def test_fault_emcy_then_recover(rig):
+    d = ppm_ready(rig)
+    j = d.joints[J1]
+    rig.sim.inject_fault(1, "emcy", 0x8611)
+    assert until(lambda: j.error is not None)
+    assert "fault" in j.error
+    assert until(lambda: "Following error" in d.status()[0]["last_emcy"])
+    assert d.status()[0]["error_register"] != "0x00"
+    r = d.set_command(J1, "position", 10)
+    assert not r.success and "recover" in r.message
+    time.sleep(0.1)
+    assert rig.state() == State.FAULT  # no automatic fault reset
+    r = d.recover()
+    assert r.success, r.message
+    assert rig.state() == State.OPERATION_ENABLED and j.error is None
+    assert d.set_command(J1, "position", 10).success
+
+
+def test_shutdown_disables_stops_sync_and_nmt(rig):
+    d = ppm_ready(rig)
+    r = d.shutdown()
+    assert r.success, r.message
+    assert rig.state() == State.SWITCH_ON_DISABLED
+    assert b"\x02\x01" in rig.sent(0x000)  # NMT stop node 1
+    time.sleep(0.1)
+    rig.drain()
+    time.sleep(0.1)
+    assert rig.sent(0x080) == []  # SYNC stopped
+    assert not d.halt().success and "not initialized" in d.halt().message
+    r = d.init()  # and it comes back, in the mode it had
+    assert r.success, r.message
+    assert rig.read(0x6061) == 1 and rig.state() == State.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("switching_state, through_disabled", [(2, True), (5, False)])
+def test_mode_switch_is_generic_and_uses_switching_state(rig, switching_state, through_disabled):
+    d = rig.start(defaults={"switching_state": switching_state})
+    assert d.init().success
+    j = d.joints[J1]
+    for mode in (1, 3, 9, 10, 8, 1):
+        rig.drain()
+        r = d.switch_mode([J1], mode)
+        assert r.success, r.message
+        assert rig.read(0x6061) == mode and rig.read(0x6060) == mode
+        assert rig.state() == State.OPERATION_ENABLED
+        cws = [int.from_bytes(data[:2], "little") & 0x8F for data in rig.sent(0x201)]
+        assert (0x00 in cws) == through_disabled
+        assert abs(rig.read(0x607A) - j.raw_position) < 5  # target = actual
+        assert rig.read(0x60FF) == 0 and rig.read(0x6071) == 0
+
+
+def test_velocity_and_cyclic_modes(rig):
+    d = rig.start()
+    assert d.init().success
+    j = d.joints[J1]
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 300).success
+    assert until(lambda: abs(j.velocity - 300) < 5)
+    assert rig.read(0x60FF) == 300
+    assert d.switch_mode([J1], 9).success
+    assert rig.read(0x60FF) == 0  # switching reset the target
+    assert d.set_command(J1, "velocity", -200).success
+    assert until(lambda: abs(j.velocity + 200) < 5)
+    assert d.switch_mode([J1], 10).success
+    assert d.set_command(J1, "effort", 5).success
+    assert until(lambda: rig.read(0x6071) == 5)
+
+
+def test_cycle_callback_drives_csp(rig):
+    d = rig.start()
+    assert d.init().success
+    assert d.switch_mode([J1], 8).success
+    j = d.joints[J1]
+    start = j.raw_position
+    targets = []
+
+    def ramp(driver):
+        goal = start + 20 * len(targets)
+        if goal <= start + 2000:
+            targets.append(goal)
+            driver.joints[J1].set_command("position", goal)
+    d.add_cycle_callback(ramp)
+    assert until(lambda: len(targets) > 100)
+    assert until(lambda: abs(j.position - (start + 2000)) < 20)
+    assert rig.read(0x607A) == start + 2000
+
+
+def test_two_nodes_pvm(rig):
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+    assert d.init().success
+    assert d.switch_mode([J1, J2], 3).success
+    assert d.set_command(J1, "velocity", 100).success
+    assert d.set_command("node2", "velocity", -150).success
+    assert until(lambda: abs(d.joints[J1].velocity - 100) < 3 and abs(d.joints[J2].velocity + 150) < 3)
+    assert rig.read(0x60FF, node=1) == 100 and rig.read(0x60FF, node=2) == -150
+    assert [s["node_id"] for s in d.status()] == [1, 2]
+
+
+def test_homing_at_init(rig):
+    d = rig.start(nodes=((1, DCF1_HM, J1),), hard_stop=(-100000.0, 3000.0),
+                  defaults={"dcf_overlay": {"6099sub1": "300", "6099sub2": "100", "30B1": "500",
+                                            "30B2": "1500", "609A": "5000"}})
+    assert d.switch_mode([J1], 1).success  # a controller started before init
+    r = d.init()
+    assert r.success, r.message
+    assert rig.read(0x6098) != 0
+    assert rig.read(0x6041) & 0x8000  # EPOS4: position referenced
+    assert rig.read(0x6061) == 1  # then the controller's mode
+    # TxPDO 1 (statusword, modes of operation display) showed homing mode on the way
+    assert 6 in {data[2] for data in rig.sent(0x181) if len(data) >= 3}
+
+
+def test_heartbeat_loss_is_an_error_until_recover(rig):
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "200"}})
+    j = d.joints[J1]
+    assert j.heartbeat_ms == 200
+    rig.sim.inject_fault(1, "heartbeat_stop")
+    assert until(lambda: j.error is not None, 2.0)
+    assert "heartbeat lost" in j.error and d.status()[0]["nmt_state"] == "LOST"
+    assert not d.set_command(J1, "position", 1).success
+    rig.sim.inject_fault(1, "clear")
+    assert until(lambda: d.status()[0]["nmt_state"] == "OPERATIONAL", 2.0)
+    r = d.recover()
+    assert r.success, r.message
+    assert d.set_command(J1, "position", 1).success
+
+
+def test_reboot_is_detected_and_recover_reconfigures(rig):
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"6065": "2345"}})
+    j = d.joints[J1]
+    assert rig.read(0x6065) == 2345
+    rig.sim.call(lambda: rig.sim.nodes[1].store.set(0x6065, 0, 1))
+    rig.sim.inject_fault(1, "reboot")
+    assert until(lambda: j.error is not None)
+    assert "rebooted" in j.error
+    r = d.recover()
+    assert r.success, r.message
+    assert rig.read(0x6065) == 2345  # configuration written again
+    assert rig.read(0x6061) == 1 and rig.state() == State.OPERATION_ENABLED
+
+
+def test_sync_counter_overflow(rig):
+    d = rig.start(sync={"interval_ms": 10, "overflow": 4})
+    assert d.init().success
+    rig.drain()
+    assert until(lambda: len(rig.sent(0x080)) > 12)
+    counters = [data[0] for data in rig.sent(0x080)]
+    assert set(counters) == {1, 2, 3, 4}
+    for a, b in zip(counters, counters[1:]):
+        assert b == a % 4 + 1
+
+
+def test_published_objects(rig):
+    d = rig.start(defaults={"publish": ["6041", "1003sub0!", "1A00"]})
+    assert d.init().success
+    values = d.read_published()
+    assert set(values) == {J1 + "_6041", J1 + "_1003sub0", J1 + "_1A00"}
+    assert state_from_statusword(values[J1 + "_6041"]) == State.OPERATION_ENABLED
+    assert values[J1 + "_1A00"] == rig.read(0x1A00)
+    assert d.published_types()[J1 + "_6041"] == 0x6
+
+
+def test_driver_lays_out_its_own_pdos_when_the_dcf_lacks_objects(rig):
+    # 0x6077 (torque actual) is in no TxPDO of the DCF: the driver maps it.
+    d = rig.start(defaults={"eff_from_device": "obj6077"})
+    assert d.joints[J1].plan.source == "driver"
+    assert d.init().success
+    mapped = [rig.read(0x1A00 + n, s) for n in range(4) for s in range(1, rig.read(0x1A00 + n) + 1)]
+    assert 0x60770010 in mapped
+    assert d.switch_mode([J1], 1).success and d.set_command(J1, "position", 500).success
+    assert until(lambda: abs(d.joints[J1].position - 500) < 1)
+
+
+@pytest.mark.parametrize("overlay, key", [
+    ({"6064": "1"}, "dcf_overlay/6064"),          # read-only
+    ({"5fff": "1"}, "dcf_overlay/5fff"),          # not in the dictionary
+    ({"6098": "300"}, "dcf_overlay/6098"),        # out of range for INTEGER8
+    ({"6040": "15"}, "dcf_overlay/6040"),         # the driver's own
+])
+def test_bad_overlays_fail_at_start(rig, overlay, key):
+    with pytest.raises(ConfigError, match=key):
+        rig.start(defaults={"dcf_overlay": overlay})
+
+
+def test_init_without_drive_fails_cleanly(rig):
+    d = rig.start(nodes=((5, DCF1, J1),), sim_dcfs=[DCF1])
+    rig.sim.stop()
+    d.boot_timeout = 0.3
+    r = d.init()
+    assert not r.success and "no boot-up" in r.message
+    assert not d.initialized
+
+
+@pytest.mark.skipif(not os.path.isdir(VENDOR), reason="../shared/vendor_dcf (maxon's DCFs, test data) is not present")
+def test_vendor_dcf_unedited(rig):
+    dcf = os.path.join(VENDOR, "epos4_50_15_can_ec90flat_gp52c_mile800_node1_unedited_boolean.dcf")
+    d = rig.start(nodes=((1, dcf, J1),))
+    assert d.joints[J1].plan.source == "dcf"
+    assert d.init().success
+    assert d.switch_mode([J1], 1).success
+    assert d.set_command(J1, "position", 1000).success
+    assert until(lambda: abs(d.joints[J1].position - 1000) < 1)
+    assert d.get_object(J1, "2200sub2").success
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
+def test_bus_failure_puts_joints_in_error_and_recover_brings_them_back(rig):
+    d = ppm_ready(rig)
+    j = d.joints[J1]
+    real_send = d.bus.send
+
+    def broken(msg, timeout=None):
+        raise can.CanOperationError("Network is down")
+    d.bus.send = broken
+    assert until(lambda: j.error is not None)
+    assert "bus error" in j.error and "Network is down" in d.status()[0]["error"]
+    assert not d.set_command(J1, "position", 1).success
+    d.bus.send = real_send
+    r = d.recover()
+    assert r.success, r.message
+    assert d.set_command(J1, "position", 100).success
+    assert until(lambda: rig.read(0x607A) == 100)
+    rig.drain()
+    assert until(lambda: rig.sent(0x77F))  # the master heartbeat runs again
+
+
+def test_before_init(rig):
+    d = rig.start()
+    assert d.status()[0]["initialized"] is False
+    assert d.read_published() == {}
+    assert "not initialized" in d.get_object(J1, "6081").message
+    assert "not initialized" in d.recover().message
+    assert d.shutdown().success
+    assert d.switch_mode([J1], 3).message == "mode 3 will be set at init"
+    assert d.init().success
+    assert rig.read(0x6061) == 3
+
+
+def test_silent_node_without_heartbeat_is_caught_by_the_pdo_watchdog(rig):
+    d = ppm_ready(rig)  # the DCF's 0x1017 is 0: no heartbeat to watch
+    j = d.joints[J1]
+    assert j.heartbeat_ms == 0
+    rig.sim.inject_fault(1, "silent")
+    assert until(lambda: j.error is not None)
+    assert "no statusword TxPDO" in j.error and d.status()[0]["nmt_state"] == "LOST"
+    assert not d.set_command(J1, "position", 1).success
+    rig.sim.inject_fault(1, "clear")
+    r = d.recover()  # configures the node again: it may have lost everything
+    assert r.success, r.message
+    assert d.set_command(J1, "position", 50).success
+    assert until(lambda: rig.read(0x607A) == 50)
+
+
+def test_node_stopped_by_someone_else_is_an_error(rig):
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "100"}})
+    j = d.joints[J1]
+    rig.sniffer.send(can.Message(arbitration_id=0x000, data=b"\x02\x01", is_extended_id=False))
+    assert until(lambda: j.error is not None)
+    assert "left OPERATIONAL" in j.error
+    assert d.recover().success
+    assert rig.state() == State.OPERATION_ENABLED

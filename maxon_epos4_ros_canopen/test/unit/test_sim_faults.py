@@ -1,0 +1,150 @@
+"""EMCY, error objects, fault reset and every fault injection of the virtual EPOS4."""
+import struct
+
+import pytest
+from canopen.sdo.exceptions import SdoCommunicationError
+
+from test_sim_support import NODE1, NODE2, NodeConfig, Rig, enable
+from maxon_epos4_ros_canopen import epos4_errors  # noqa: E402 (path set by test_sim_support)
+
+
+@pytest.fixture
+def rig():
+    r = Rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
+    yield r
+    r.close()
+
+
+def test_injected_emcy_faults_drive_and_fills_error_objects(rig):
+    node = rig.remote(1)
+    enable(node, 1)
+    rig.drain()
+    assert "Following error" in rig.sim.inject_fault(1, "emcy", error_code=0x8611)
+    msg = rig.expect(lambda m: m.arbitration_id == 0x081)
+    assert bytes(msg.data) == struct.pack("<HB5s", 0x8611, 0x81, bytes(5))
+    assert rig.wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x08)
+    assert node.sdo[0x6041].raw == 0x0218
+    assert node.sdo[0x603F].raw == 0x8611
+    assert node.sdo[0x1001].raw == 0x81
+    rig.sim.inject_fault(1, "emcy", error_code=0x3210)
+    assert node.sdo[0x1003][0].raw == 2
+    assert node.sdo[0x1003][1].raw == 0x3210  # newest first
+    assert node.sdo[0x1003][2].raw == 0x8611
+    # fault reset needs the rising edge of bit 7
+    node.sdo[0x6040].raw = 0x0000
+    rig.drain()
+    node.sdo[0x6040].raw = 0x0080
+    msg = rig.expect(lambda m: m.arbitration_id == 0x081)
+    assert bytes(msg.data) == bytes(8)  # error reset EMCY
+    assert node.sdo[0x6041].raw == 0x0250 and node.sdo[0x603F].raw == 0
+    assert node.sdo[0x1001].raw == 0
+    node.sdo[0x1003][0].raw = 0  # clear history
+    assert node.sdo[0x1003][0].raw == 0 and node.sdo[0x1003][1].raw == 0
+
+
+def test_fault_reaction_uses_quick_stop_ramp(rig):
+    node = rig.remote(1)
+    enable(node, 3)
+    node.sdo[0x60FF].raw = 1000
+    assert rig.wait(lambda: node.sdo[0x606C].raw > 950)
+    node.sdo[0x6085].raw = 1000
+    rig.sim.inject_fault(1, "emcy", error_code=0x2310)
+    assert node.sdo[0x6041].raw & 0x4F == 0x0F  # fault reaction active, still braking
+    assert rig.wait(lambda: node.sdo[0x6041].raw & 0x4F == 0x08)
+    assert abs(node.sdo[0x606C].raw) < 5
+
+
+def test_silent_node_sends_nothing_then_recovers(rig):
+    node = rig.remote(1)
+    node.sdo[0x1017].raw = 20
+    node.sdo.RESPONSE_TIMEOUT = 0.3
+    node.sdo.MAX_RETRIES = 1  # canopen: 1 = a single attempt
+    rig.sim.inject_fault(1, "silent", duration=0.0)
+    rig.drain()
+    with pytest.raises(SdoCommunicationError):
+        node.sdo[0x6041].raw
+    node_frames = {0x081, 0x181, 0x281, 0x381, 0x481, 0x581, 0x701}
+    assert not [m for m in rig.collect(0.3) if m.arbitration_id in node_frames]
+    rig.sim.inject_fault(1, "clear")
+    assert node.sdo[0x6041].raw == 0x0250
+    assert rig.expect(lambda m: m.arbitration_id == 0x701)
+
+
+def test_heartbeat_stop_keeps_sdo_alive(rig):
+    node = rig.remote(1)
+    node.sdo[0x1017].raw = 20
+    assert rig.expect(lambda m: m.arbitration_id == 0x701)
+    rig.sim.inject_fault(1, "heartbeat_stop")
+    rig.drain()
+    assert not [m for m in rig.collect(0.3) if m.arbitration_id == 0x701]
+    assert node.sdo[0x6041].raw == 0x0250
+
+
+def test_reboot_boots_up_with_power_on_values(rig):
+    node = rig.remote(1)
+    enable(node, 3)
+    node.sdo[0x6081].raw = 123
+    rig.drain()
+    rig.sim.inject_fault(1, "reboot")
+    assert rig.expect(lambda m: m.arbitration_id == 0x701 and bytes(m.data) == b"\x00")
+    assert node.sdo[0x6081].raw == 1000
+    assert node.sdo[0x6041].raw == 0x0250
+    assert node.sdo[0x6061].raw == 1
+
+
+def test_sdo_delay_delays_answers(rig):
+    node = rig.remote(1)
+    rig.sim.inject_fault(1, "sdo_delay", duration=0.4)
+    rig.drain()
+    rig.send(0x601, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+    assert rig.expect(lambda m: m.arbitration_id == 0x581, timeout=0.2) is None
+    assert rig.expect(lambda m: m.arbitration_id == 0x581, timeout=2.0) is not None
+    rig.sim.inject_fault(1, "clear")
+    assert node.sdo[0x6041].raw == 0x0250
+
+
+def test_corrupt_frame_flips_the_next_frame_only(rig):
+    rig.sim.inject_fault(2, "corrupt_frame")
+    rig.drain()
+    rig.send(0x602, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+    bad = rig.expect(lambda m: m.arbitration_id == 0x582)
+    assert bytes(bad.data) == bytes(b ^ 0xFF for b in bytes([0x4B, 0x41, 0x60, 0, 0x50, 0x02, 0, 0]))
+    rig.send(0x602, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+    good = rig.expect(lambda m: m.arbitration_id == 0x582)
+    assert bytes(good.data) == bytes([0x4B, 0x41, 0x60, 0, 0x50, 0x02, 0, 0])
+
+
+def test_bad_injection_requests_raise_clear_errors(rig):
+    with pytest.raises(ValueError, match="unknown fault"):
+        rig.sim.inject_fault(1, "explode")
+    with pytest.raises(ValueError, match="no simulated node 9"):
+        rig.sim.inject_fault(9, "reboot")
+    with pytest.raises(ValueError, match="error_code"):
+        rig.sim.inject_fault(1, "emcy", error_code=0)
+    with pytest.raises(ValueError, match="duration"):
+        rig.sim.inject_fault(1, "silent", duration=-1.0)
+    with pytest.raises(ValueError, match="duration"):
+        rig.sim.inject_fault(1, "sdo_delay", duration=-1.0)
+    node = rig.remote(1)
+    assert node.sdo[0x6041].raw == 0x0250  # still serving
+
+
+def test_describe_error_codes():
+    assert epos4_errors.describe(0x8611) == "0x8611 Following error"
+    assert epos4_errors.describe(0x8120) == "0x8120 CAN passive mode error"
+    assert epos4_errors.describe(0x1234) == "0x1234 unknown EPOS4 error"
+    assert epos4_errors.error_register(0x3210) == 0x05
+    assert epos4_errors.error_register(0x8120) == 0x11
+    assert epos4_errors.error_register(0x2999) == 0x03  # by error class
+
+
+def test_timed_silence_ends_by_itself(rig):
+    rig.sim.inject_fault(2, "silent", duration=2.0)
+    rig.drain()
+    rig.send(0x602, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+    assert rig.expect(lambda m: m.arbitration_id == 0x582, timeout=0.2) is None
+
+    def answers():
+        rig.send(0x602, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
+        return rig.expect(lambda m: m.arbitration_id == 0x582, timeout=0.1) is not None
+    assert rig.wait(answers, timeout=5.0)

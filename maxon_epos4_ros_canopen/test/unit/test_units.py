@@ -1,0 +1,101 @@
+"""Unit conversion expressions: ros_canopen's functions, and nothing that runs code."""
+import math
+
+import pytest
+
+from maxon_epos4_ros_canopen.objects import ObjectKey
+from maxon_epos4_ros_canopen.units import UnitExpressionError, compile_expression
+
+
+@pytest.mark.parametrize("text, env, expected", [
+    ("pos", {"pos": 1000.0}, 1000.0),
+    ("rint(eff)", {"eff": 2.5}, 2.0),           # half to even, like C rint
+    ("rint(eff)", {"eff": 3.5}, 4.0),
+    ("rint(rad2deg(pos)*1000)", {"pos": math.pi / 2}, 90000.0),
+    ("deg2rad(obj6064)/1000", {"obj6064": 180000.0}, math.pi),
+    ("obj606C", {"obj606C": -12.0}, -12.0),
+    ("obj6099sub02 + obj6099sub2", {"obj6099sub02": 4.0}, 8.0),
+    ("-2^2", {}, -4.0),
+    ("2^3^2", {}, 512.0),
+    ("2^-1", {}, 0.5),
+    ("(1+2)*3 - 4/2", {}, 7.0),
+    ("abs(-3) + sqrt(16)", {}, 7.0),
+    ("min(3, 1, 2) + max(3, 1, 2)", {}, 4.0),
+    ("avg(1, 2, 3, 6)", {}, 3.0),
+    ("norm(3*pi, -pi, pi)", {}, -math.pi),
+    ("norm(-0.5, 0, 2)", {}, 1.5),
+    ("smooth(10, vel, 0.5)", {"vel": 0.0}, 5.0),
+    ("smooth(10, vel, 0.5)", {"vel": math.nan}, 10.0),
+    ("sin(pi/2) + cos(0) + tan(0)", {}, 2.0),
+    ("1.5e3 + .5", {}, 1500.5),
+    ("pi()", {}, math.pi),
+])
+def test_values(text, env, expected):
+    assert compile_expression(text).evaluate(env) == pytest.approx(expected)
+
+
+def test_variables_and_objects_are_listed():
+    e = compile_expression("smooth(deg2rad(obj606C)/1000, vel, 0.3) + obj6099sub2*0")
+    assert set(e.variables) == {"vel", "obj606C", "obj6099sub02"}
+    assert set(e.objects) == {ObjectKey(0x606C), ObjectKey(0x6099, 2)}
+    assert compile_expression("obj6064SUB0").objects == (ObjectKey(0x6064),)
+
+
+def test_constants_are_folded_once():
+    e = compile_expression("2*pi*1000")
+    assert e.constant and e.evaluate({}) == pytest.approx(2000 * math.pi)
+    assert not compile_expression("pos*2").constant
+
+
+def test_yaml_numbers_are_accepted():
+    assert compile_expression(0).evaluate({}) == 0.0
+    assert compile_expression(2.5).evaluate({}) == 2.5
+
+
+@pytest.mark.parametrize("text", ["1/0", "sqrt(-1)", "10^400", "norm(1, 2, 2)"])
+def test_domain_errors_give_nan_or_inf_never_raise(text):
+    value = compile_expression(text).evaluate({})
+    assert not math.isfinite(value)
+
+
+@pytest.mark.parametrize("text", [
+    "__import__('os').system('touch /tmp/pwned')",
+    "pos.__class__",
+    "().__class__.__bases__[0]",
+    "open('/etc/passwd')",
+    "eval('1')",
+    "exec",
+    "pos if 1 else 0",
+    "lambda: 0",
+    "[pos]",
+    "pos; import os",
+    "pos**2",
+    "x",
+    "os",
+    "getattr(pos, 'real')",
+    "obj60",          # objects need four hex digits
+    "obj6064sub123",  # and a sub-index of at most two
+    "rint(pos",
+    "rint pos",
+    "pos pos",
+    "1 +",
+    "",
+    "   ",
+    "norm(1, 2)",
+    "rint(1, 2)",
+    "min()",
+    "pos\x00",
+    "(" * 200 + "1" + ")" * 200,
+    "1+" * 600 + "1",
+    True,
+    None,
+    ["pos"],
+])
+def test_refused_at_compile_time(text):
+    with pytest.raises(UnitExpressionError):
+        compile_expression(text)
+
+
+def test_error_says_where():
+    with pytest.raises(UnitExpressionError, match=r"unknown name 'foo' .* at character 6 of 'rint\(foo\)'"):
+        compile_expression("rint(foo)")
