@@ -55,7 +55,7 @@ echo "$PWD" > "$rundir/cwd"
 # UML's console is this process's stdout; its own messages go to uml.log.
 linux.uml mem=2G root=/dev/root rootfstype=hostfs rootflags=/ rw quiet loglevel=0 \
   init="$REPO/tools/uml/init.sh" VCAN_RUNDIR="$rundir" \
-  con=null con0=null,fd:1 < /dev/null 2> "$rundir/uml.log" | tr -d "\r" | grep --line-buffered -vx "Powering off."
+  con=null con0=null,fd:1 < /dev/null 2> "$rundir/uml.log" | sed -u "s/\r*$//" | grep --line-buffered -vx "Powering off."
 
 if [ ! -f "$rundir/status" ]; then
   echo "vcan0: user-mode Linux ended without a result (see $rundir/uml.log)" >&2

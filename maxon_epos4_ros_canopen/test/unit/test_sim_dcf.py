@@ -20,7 +20,7 @@ def test_generated_dcfs_are_current():
     assert result.returncode == 0, result.stderr
 
 
-@pytest.mark.parametrize("name, method", [("epos4_node1.dcf", 37), ("epos4_node2.dcf", 37),
+@pytest.mark.parametrize("name, method", [("epos4_node1.dcf", 0), ("epos4_node2.dcf", 0),
                                           ("epos4_node1_hm.dcf", -3)])
 def test_project_dcfs(name, method):
     od = canopen.import_od(os.path.join(CONFIG, name))

@@ -120,6 +120,7 @@ def test_velocity_changes_over_time_not_instantly(rig):
 
 def test_homing_37_sets_home_position(rig):
     node = rig.remote(1)
+    node.sdo[0x6098].raw = 37  # the project's DCFs ship 0: no homing required
     node.sdo[0x30B0].raw = 1234
     enable(node, 6)
     node.sdo[0x6040].raw = 0x001F
