@@ -12,7 +12,8 @@ from std_msgs.msg import Float64
 NS = "/maxon"
 JOINT = "base_link1_joint"
 COMMAND_TOPIC = NS + "/canopen_motor/" + JOINT + "_position_controller/command"
-TARGETS = [1000.0, -2000.0, 5000.0, 0.0]  # inc, as in the seeds (no unit conversion)
+TARGETS = [10000.0, -5000.0, 0.0]  # inc, as in the seeds (no unit conversion)
+PROFILE_VELOCITY = 200  # rpm, slow enough to watch the joint move
 TOLERANCE = 20.0  # inc
 
 
@@ -37,6 +38,11 @@ def main() -> int:
 
     if "success: True" not in shell("rosservice call " + NS + "/driver/init"):
         return 1
+    # The seeds' SDO services: set the profile velocity, read it back.
+    shell("rosservice call %s/driver/set_object %s '!!str 6081' '!!str %d' false" % (NS, JOINT, PROFILE_VELOCITY))
+    if "value: \"%d\"" % PROFILE_VELOCITY not in shell(
+            "rosservice call %s/driver/get_object %s '!!str 6081' false" % (NS, JOINT)):
+        return 1
     rospy.init_node("maxon_epos4_demo", anonymous=True, disable_signals=True)
     latest = {}
 
@@ -55,7 +61,7 @@ def main() -> int:
         t0 = time.monotonic()
         reached = False
         while time.monotonic() - t0 < 60.0:
-            time.sleep(0.25)
+            time.sleep(0.2)
             if "position" in latest:
                 print("  t=%5.2fs  %s position=%9.1f inc  velocity=%8.1f rpm" % (
                     time.monotonic() - t0, JOINT, latest["position"], latest["velocity"]), flush=True)
