@@ -32,7 +32,7 @@ def test_project_dcfs(name, method):
 
 @pytest.mark.skipif(not VENDOR_FILES, reason="maxon's DCFs are test data in ../shared/vendor_dcf, "
                                              "absent outside the project's machines")
-@pytest.mark.parametrize("path", VENDOR_FILES, ids=os.path.basename)
+@pytest.mark.parametrize("path", VENDOR_FILES, ids=[os.path.basename(p) for p in VENDOR_FILES])
 def test_vendor_dcf_serves_ppm_move(path):
     node_id = canopen.import_od(path).node_id or 1
     rig = Rig([NodeConfig(node_id, path)])
