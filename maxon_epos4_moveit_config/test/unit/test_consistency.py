@@ -33,7 +33,7 @@ def _xacro_command():
 def urdf():
     xacro = _xacro_command()
     if xacro is None:
-        pytest.skip("the xacro command is not installed (pip install xacro, see requirements.txt)")
+        pytest.fail("the xacro command is not installed: run tools/setup.sh (xacro is in requirements.txt)")
     out = subprocess.run([xacro, str(XACRO_FILE)], check=True, capture_output=True, text=True).stdout
     return ET.fromstring(out)
 

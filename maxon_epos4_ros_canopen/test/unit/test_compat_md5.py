@@ -48,7 +48,7 @@ EXPECTED_PARTS = {
 def generated(tmp_path_factory):
     """Generate Python classes for both compat packages into a temp dir."""
     if not STD_MSGS.is_dir():
-        pytest.skip("std_msgs message definitions (Debian ros-std-msgs) are not installed")
+        pytest.fail("std_msgs message definitions (Debian ros-std-msgs) are not installed: run tools/setup.sh")
     out = tmp_path_factory.mktemp("gen")
     search = {
         "std_msgs": [str(STD_MSGS)],
