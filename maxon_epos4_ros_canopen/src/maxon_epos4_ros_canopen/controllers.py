@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Protocol, Sequence, Tuple
 
 from .cia402 import OperationMode, mode_name
+from .result import Result, fail, ok
 
 BEST_EFFORT = 1
 STRICT = 2
@@ -50,22 +51,18 @@ class ControllerError(Exception):
     """A controller configuration or request that cannot be served."""
 
 
-@dataclass
-class Outcome:
-    """Answer of a manager operation: ok plus a sentence for the log."""
-
-    ok: bool
-    message: str = ""
-
-
 class Backend(Protocol):
     """What the manager needs from the driver (driver.Driver satisfies it):
-    `joints[name].set_command(kind, value)` and `switch_mode(names, mode)`,
-    both answering with an object that has .success and .message."""
+    `set_command(joint, kind, value)` (thread-safe: it posts the command to
+    the driver's cycle) and `switch_mode(names, mode)`, both answering with a
+    Result."""
 
     joints: Mapping[str, Any]
 
-    def switch_mode(self, joint_names: Sequence[str], mode: int) -> Any:
+    def set_command(self, joint_name: str, kind: str, value: float) -> Result:
+        """Command a joint (ROS units)."""
+
+    def switch_mode(self, joint_names: Sequence[str], mode: int) -> Result:
         """Switch the joints' drives to `mode`."""
 
 
@@ -98,9 +95,9 @@ class Controller:
         resources = list(self.joints) if self.claims_joints else []
         return [ClaimedResources(HARDWARE_INTERFACES[self.interface], resources)]
 
-    def starting(self, backend: Backend) -> Outcome:
+    def starting(self, backend: Backend) -> Result:
         """Called after the drive modes are switched; override to prepare."""
-        return Outcome(True)
+        return ok()
 
     def stopping(self, backend: Backend) -> None:
         """Called when the controller stops."""
@@ -132,24 +129,25 @@ class ForwardCommandController(Controller):
     claims_joints = True
     group = False
 
-    def command(self, backend: Backend, values: Sequence[float]) -> Outcome:
+    def command(self, backend: Backend, values: Sequence[float]) -> Result:
         if not self.running:
-            return Outcome(False, "controller %s is not running: command ignored" % self.name)
+            return fail("controller %s is not running: command ignored" % self.name)
         if len(values) != len(self.joints):
-            return Outcome(False, "controller %s: command has %d values for %d joints: not executed"
+            return fail("controller %s: command has %d values for %d joints: not executed"
                            % (self.name, len(values), len(self.joints)))
         for value in values:
             if not isinstance(value, (int, float)) or not math.isfinite(value):
-                return Outcome(False, "controller %s: command %r is not a finite number: not executed"
+                return fail("controller %s: command %r is not a finite number: not executed"
                                % (self.name, value))
         messages = []
-        ok = True
+        success = True
         for joint, value in zip(self.joints, values):
-            result = backend.joints[joint].set_command(self.interface, float(value))
-            if not getattr(result, "success", False):
-                ok = False
-                messages.append("%s: %s" % (joint, getattr(result, "message", "refused")))
-        return Outcome(ok, "; ".join(messages))
+            result = backend.set_command(joint, self.interface, float(value))
+            if not result.success:
+                success = False
+            if result.message:
+                messages.append("%s: %s" % (joint, result.message))
+        return Result(success, "; ".join(messages))
 
 
 def _command_type(package: str, class_name: str, interface: str, group: bool) -> type:
@@ -284,58 +282,58 @@ class ControllerManager:
         return [t for t, _ in pairs], [b for _, b in pairs]
 
     # --- lifecycle ------------------------------------------------------
-    def load(self, name: str) -> Outcome:
+    def load(self, name: str) -> Result:
         with self._lock:
             if not isinstance(name, str) or not name.strip("/"):
-                return Outcome(False, "load_controller: empty controller name")
+                return fail("load_controller: empty controller name")
             if name in self._controllers:
-                return Outcome(False, "controller %s is already loaded" % name)
+                return fail("controller %s is already loaded" % name)
             params = self._lookup(name)
             if not isinstance(params, Mapping):
-                return Outcome(False, "controller %s: no parameters found for it (is its YAML loaded?)" % name)
+                return fail("controller %s: no parameters found for it (is its YAML loaded?)" % name)
             type_name = params.get("type")
             if not isinstance(type_name, str) or not type_name:
-                return Outcome(False, "controller %s: missing required key 'type'" % name)
+                return fail("controller %s: missing required key 'type'" % name)
             entry = _REGISTRY.get(type_name)
             if entry is None:
-                return Outcome(False, "controller %s: unknown type '%s'; known types: %s"
+                return fail("controller %s: unknown type '%s'; known types: %s"
                                % (name, type_name, ", ".join(t for t, _ in controller_types())))
             try:
                 controller = entry.factory(name, params, self)
             except ControllerError as exc:
-                return Outcome(False, str(exc))
+                return fail(str(exc))
             controller.type_name = type_name
             self._controllers[name] = controller
         self._notify(self.on_loaded, controller)
-        return Outcome(True, "loaded %s (%s)" % (name, type_name))
+        return ok("loaded %s (%s)" % (name, type_name))
 
-    def unload(self, name: str) -> Outcome:
+    def unload(self, name: str) -> Result:
         with self._lock:
             controller = self._controllers.get(name)
             if controller is None:
-                return Outcome(False, "controller %s is not loaded" % name)
+                return fail("controller %s is not loaded" % name)
             if controller.running:
-                return Outcome(False, "controller %s is running: stop it before unloading" % name)
+                return fail("controller %s is running: stop it before unloading" % name)
             del self._controllers[name]
         self._notify(self.on_unloaded, controller)
-        return Outcome(True, "unloaded %s" % name)
+        return ok("unloaded %s" % name)
 
-    def reload_libraries(self, force_kill: bool) -> Outcome:
+    def reload_libraries(self, force_kill: bool) -> Result:
         """Controller types are Python classes: nothing to reload, but honour
         ros_control's rule that no controller may be loaded unless force_kill."""
         with self._lock:
             loaded = list(self._controllers)
         if loaded and not force_kill:
-            return Outcome(False, "controllers still loaded (%s): call with force_kill to stop "
+            return fail("controllers still loaded (%s): call with force_kill to stop "
                                   "and unload them" % ", ".join(loaded))
         if loaded:
             self.switch([], [n for n in loaded if self._controllers[n].running], BEST_EFFORT)
             for name in loaded:
                 self.unload(name)
-        return Outcome(True, "controller libraries reloaded")
+        return ok("controller libraries reloaded")
 
     def switch(self, start: Iterable[str], stop: Iterable[str], strictness: int = BEST_EFFORT,
-               start_asap: bool = False, timeout: float = 0.0) -> Outcome:
+               start_asap: bool = False, timeout: float = 0.0) -> Result:
         """Stop `stop`, then start `start`, with ros_control's strictness rules.
 
         Starting switches each joint's drive to the controller's
@@ -355,30 +353,30 @@ class ControllerManager:
             to_stop, refused = self._select(stop, "stop", lambda c: "" if c.running else "not running",
                                             strict, notes)
             if refused:
-                return Outcome(False, refused)
+                return fail(refused)
             to_start, refused = self._select(
                 start, "start", lambda c: "already running" if c.running and c not in to_stop else "",
                 strict, notes)
             if refused:
-                return Outcome(False, refused)
+                return fail(refused)
             conflict = self._conflict(to_start, to_stop)
             if conflict:
-                return Outcome(False, conflict)
+                return fail(conflict)
 
             for controller in to_stop:
                 self._stop(controller)
             started_all = True
             for controller in to_start:
                 outcome = self._start(controller)
-                if not outcome.ok:
+                if not outcome.success:
                     started_all = False
                     notes.append(outcome.message)
                     if strict:
-                        return Outcome(False, "; ".join(notes))
-            ok = started_all or not strict
+                        return fail("; ".join(notes))
+            success = started_all or not strict
             if to_start and not any(c.running for c in to_start):
-                ok = False
-        return Outcome(ok, "; ".join(notes))
+                success = False
+        return Result(success, "; ".join(notes))
 
     def stop_all(self) -> None:
         """Stop every running controller (driver shutdown, node exit)."""
@@ -420,19 +418,19 @@ class ControllerManager:
                 owners[joint] = controller.name
         return ""
 
-    def _start(self, controller: Controller) -> Outcome:
+    def _start(self, controller: Controller) -> Result:
         if controller.required_drive_mode is not None and controller.joints:
             result = self.backend.switch_mode(controller.joints, controller.required_drive_mode)
-            if not getattr(result, "success", False):
-                return Outcome(False, "cannot start %s: switching %s to mode %d failed: %s"
-                               % (controller.name, ", ".join(controller.joints), controller.required_drive_mode,
-                                  getattr(result, "message", "no reason given")))
+            if not result.success:
+                return fail("cannot start %s: switching %s to mode %d failed: %s"
+                            % (controller.name, ", ".join(controller.joints), controller.required_drive_mode,
+                               result.message or "no reason given"))
         outcome = controller.starting(self.backend)
-        if not outcome.ok:
-            return Outcome(False, "cannot start %s: %s" % (controller.name, outcome.message))
+        if not outcome.success:
+            return fail("cannot start %s: %s" % (controller.name, outcome.message))
         controller.state = RUNNING
         self._notify(self.on_started, controller)
-        return Outcome(True)
+        return ok()
 
     def _stop(self, controller: Controller) -> None:
         controller.stopping(self.backend)

@@ -1,6 +1,6 @@
 """Joint trajectory execution core for Cyclic Synchronous Position (CSP).
 
-ROS-free: the ROS adapter (``ros_trajectory_controller``) turns
+ROS-free: the ROS adapter (``maxon_epos4_ros_canopen_node.trajectory_action``) turns
 control_msgs/trajectory_msgs messages into the plain types here and calls
 ``TrajectoryExecutor.update`` once per SYNC cycle; the returned desired
 positions are the 0x607A targets of that cycle.

@@ -3,7 +3,7 @@
 ROS-free: owns a ``TrajectoryExecutor`` and, once per SYNC cycle
 (``cycle``, called from the driver's per-cycle hook), samples the running
 trajectory and sets each joint's CSP target (0x607A through the joint's
-position command). The ROS adapter (``ros_trajectory_controller``) turns
+position command). The ROS adapter (``maxon_epos4_ros_canopen_node.trajectory_action``) turns
 actions, topics and services into ``submit``/``cancel``/``query_state`` and
 learns how goals end through ``on_outcome``.
 
@@ -17,7 +17,8 @@ import time
 from typing import Any, Callable, List, Mapping, Optional, Sequence, Tuple
 
 from .cia402 import OperationMode
-from .controllers import Controller, ControllerError, Outcome as ManagerOutcome, parse_joints, register_controller_type
+from .controllers import Controller, ControllerError, parse_joints, register_controller_type
+from .result import Result, fail, ok
 from .trajectory import (INVALID_GOAL, PATH_TOLERANCE_VIOLATED, CycleOutput, Outcome, Sample, TrajectoryError,
                          TrajectoryExecutor, TrajectoryPoint, csp_readiness_problem, tolerances_from_constraints)
 
@@ -90,13 +91,13 @@ class JointTrajectoryController(Controller):
         self._lock = threading.RLock()
 
     # --- lifecycle (controller manager) --------------------------------
-    def starting(self, backend: Any) -> ManagerOutcome:
+    def starting(self, backend: Any) -> Result:
         try:
             positions = [float(backend.joints[j].position) for j in self.joints]
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
-            return ManagerOutcome(False, "joint positions unavailable: %s" % exc)
+            return fail("joint positions unavailable: %s" % exc)
         if not all(math.isfinite(p) for p in positions):
-            return ManagerOutcome(False, "joint positions are not known yet (driver not initialised?)")
+            return fail("joint positions are not known yet (driver not initialised?)")
         with self._lock:
             self.executor.reset(self.clock(), positions)
             self._not_ready = ""
@@ -108,7 +109,7 @@ class JointTrajectoryController(Controller):
                 if lower is not None and upper is not None:
                     self.executor.position_limits[joint] = (float(lower), float(upper))
         self.warnings = self._check_interpolation_period(backend)
-        return ManagerOutcome(True, "; ".join(self.warnings))
+        return ok("; ".join(self.warnings))
 
     def stopping(self, backend: Any) -> None:
         with self._lock:

@@ -84,12 +84,12 @@ class CspRig:
             raise RuntimeError("driver init failed: %s" % result.message)
         self.manager = ControllerManager(self.driver, list(self.driver.joints), self.params.get)
         loaded = self.manager.load(CONTROLLER)
-        if not loaded.ok:
+        if not loaded.success:
             raise RuntimeError(loaded.message)
         ctrl = self.manager.get(CONTROLLER)
         self.driver.add_cycle_callback(lambda driver: self._cycle(ctrl, driver))
         started = self.manager.switch([CONTROLLER], [])
-        if not started.ok:
+        if not started.success:
             raise RuntimeError("controller did not start: %s" % started.message)
         ctrl.on_outcome.append(self.outcomes.append)
         return ctrl

@@ -92,7 +92,7 @@ def test_seed_controllers_load_and_report_initialized():
     manager, _ = make_manager()
     for name in ("joint_state_controller", "base_link1_joint_position_controller",
                  "joint_group_position_controller"):
-        assert manager.load(name).ok
+        assert manager.load(name).success
     assert states(manager) == {
         "joint_state_controller": "initialized",
         "base_link1_joint_position_controller": "initialized",
@@ -138,16 +138,16 @@ def test_list_controller_types_names_every_seed_type():
 def test_bad_controller_configuration_is_refused_with_the_key(text, name, expected):
     manager, _ = make_manager(text)
     outcome = manager.load(name)
-    assert not outcome.ok
+    assert not outcome.success
     assert expected in outcome.message
     assert manager.controllers() == []
 
 
 def test_load_twice_is_refused():
     manager, _ = make_manager()
-    assert manager.load("joint_state_controller").ok
+    assert manager.load("joint_state_controller").success
     outcome = manager.load("joint_state_controller")
-    assert not outcome.ok and "already loaded" in outcome.message
+    assert not outcome.success and "already loaded" in outcome.message
 
 
 def test_starting_a_controller_switches_its_joints_to_the_required_drive_mode():
@@ -155,7 +155,7 @@ def test_starting_a_controller_switches_its_joints_to_the_required_drive_mode():
     manager.load("joint_state_controller")
     manager.load("base_link1_joint_position_controller")
     outcome = manager.switch(["joint_state_controller", "base_link1_joint_position_controller"], [], cm.STRICT)
-    assert outcome.ok, outcome.message
+    assert outcome.success, outcome.message
     assert driver.modes == [(("base_link1_joint",), 1)]
     assert states(manager) == {"joint_state_controller": "running",
                                "base_link1_joint_position_controller": "running"}
@@ -165,10 +165,10 @@ def test_switch_position_to_velocity_changes_mode_in_one_call():
     manager, driver = make_manager()
     for name in ("base_link1_joint_position_controller", "base_link1_joint_velocity_controller"):
         manager.load(name)
-    assert manager.switch(["base_link1_joint_position_controller"], [], cm.STRICT).ok
+    assert manager.switch(["base_link1_joint_position_controller"], [], cm.STRICT).success
     outcome = manager.switch(["base_link1_joint_velocity_controller"],
                              ["base_link1_joint_position_controller"], cm.STRICT)
-    assert outcome.ok, outcome.message
+    assert outcome.success, outcome.message
     assert driver.modes[-1] == (("base_link1_joint",), 3)
     assert states(manager)["base_link1_joint_position_controller"] == "stopped"
     assert states(manager)["base_link1_joint_velocity_controller"] == "running"
@@ -178,10 +178,10 @@ def test_two_controllers_on_one_joint_is_a_resource_conflict_in_any_strictness()
     manager, driver = make_manager()
     manager.load("base_link1_joint_position_controller")
     manager.load("joint_group_position_controller")
-    assert manager.switch(["base_link1_joint_position_controller"], []).ok
+    assert manager.switch(["base_link1_joint_position_controller"], []).success
     for strictness in (cm.BEST_EFFORT, cm.STRICT):
         outcome = manager.switch(["joint_group_position_controller"], [], strictness)
-        assert not outcome.ok
+        assert not outcome.success
         assert "resource conflict: joint base_link1_joint" in outcome.message
     assert states(manager)["joint_group_position_controller"] == "initialized"
     assert len(driver.modes) == 1
@@ -191,17 +191,17 @@ def test_strict_refuses_unknown_names_and_changes_nothing():
     manager, driver = make_manager()
     manager.load("joint_state_controller")
     outcome = manager.switch(["joint_state_controller", "nonexistent"], [], cm.STRICT)
-    assert not outcome.ok and "cannot start nonexistent: not loaded" in outcome.message
+    assert not outcome.success and "cannot start nonexistent: not loaded" in outcome.message
     assert states(manager)["joint_state_controller"] == "initialized"
     outcome = manager.switch([], ["joint_state_controller"], cm.STRICT)
-    assert not outcome.ok and "not running" in outcome.message
+    assert not outcome.success and "not running" in outcome.message
 
 
 def test_best_effort_starts_what_it_can():
     manager, _ = make_manager()
     manager.load("joint_state_controller")
     outcome = manager.switch(["nonexistent", "joint_state_controller"], ["also_missing"], cm.BEST_EFFORT)
-    assert outcome.ok
+    assert outcome.success
     assert "nonexistent" in outcome.message and "also_missing" in outcome.message
     assert states(manager)["joint_state_controller"] == "running"
 
@@ -210,7 +210,7 @@ def test_strictness_zero_falls_back_to_best_effort_like_ros_control():
     manager, _ = make_manager()
     manager.load("joint_state_controller")
     outcome = manager.switch(["joint_state_controller"], [], 0)
-    assert outcome.ok and "BEST_EFFORT" in outcome.message
+    assert outcome.success and "BEST_EFFORT" in outcome.message
 
 
 def test_failed_mode_switch_leaves_controller_stopped():
@@ -218,11 +218,11 @@ def test_failed_mode_switch_leaves_controller_stopped():
     driver.fail_modes.add(3)
     manager.load("base_link1_joint_velocity_controller")
     outcome = manager.switch(["base_link1_joint_velocity_controller"], [], cm.STRICT)
-    assert not outcome.ok
+    assert not outcome.success
     assert "0x6061" in outcome.message
     assert not manager.get("base_link1_joint_velocity_controller").running
     best = manager.switch(["base_link1_joint_velocity_controller"], [], cm.BEST_EFFORT)
-    assert not best.ok  # nothing could start
+    assert not best.success  # nothing could start
 
 
 def test_commands_reach_the_driver_only_while_running_and_finite():
@@ -230,13 +230,13 @@ def test_commands_reach_the_driver_only_while_running_and_finite():
     manager.load("base_link1_joint_position_controller")
     ctrl = manager.get("base_link1_joint_position_controller")
     refused = ctrl.command(driver, [1000.0])
-    assert not refused.ok and "not running" in refused.message
+    assert not refused.success and "not running" in refused.message
     manager.switch(["base_link1_joint_position_controller"], [])
-    assert ctrl.command(driver, [1000.0]).ok
+    assert ctrl.command(driver, [1000.0]).success
     assert driver.commands == [("base_link1_joint", "position", 1000.0)]
     for bad in (float("nan"), float("inf")):
         outcome = ctrl.command(driver, [bad])
-        assert not outcome.ok and "not a finite number" in outcome.message
+        assert not outcome.success and "not a finite number" in outcome.message
     assert len(driver.commands) == 1
 
 
@@ -248,13 +248,13 @@ grp:
   required_drive_mode: 3
 """
     manager, driver = make_manager(text, joints=("base_link1_joint", "base_link2_joint"))
-    assert manager.load("grp").ok
-    assert manager.switch(["grp"], [], cm.STRICT).ok
+    assert manager.load("grp").success
+    assert manager.switch(["grp"], [], cm.STRICT).success
     assert driver.modes == [(("base_link1_joint", "base_link2_joint"), 3)]
     grp = manager.get("grp")
     outcome = grp.command(driver, [1.0])
-    assert not outcome.ok and "1 values for 2 joints" in outcome.message
-    assert grp.command(driver, [100.0, -200.0]).ok
+    assert not outcome.success and "1 values for 2 joints" in outcome.message
+    assert grp.command(driver, [100.0, -200.0]).success
     assert driver.commands == [("base_link1_joint", "velocity", 100.0), ("base_link2_joint", "velocity", -200.0)]
 
 
@@ -264,7 +264,7 @@ def test_driver_refusal_is_reported():
     manager.load("base_link1_joint_position_controller")
     manager.switch(["base_link1_joint_position_controller"], [])
     outcome = manager.get("base_link1_joint_position_controller").command(driver, [5.0])
-    assert not outcome.ok and "base_link1_joint: drive is halted" in outcome.message
+    assert not outcome.success and "base_link1_joint: drive is halted" in outcome.message
 
 
 def test_unload_requires_stop_and_reload_requires_force_kill():
@@ -272,11 +272,11 @@ def test_unload_requires_stop_and_reload_requires_force_kill():
     manager.load("joint_state_controller")
     manager.switch(["joint_state_controller"], [])
     outcome = manager.unload("joint_state_controller")
-    assert not outcome.ok and "stop it before unloading" in outcome.message
-    assert not manager.reload_libraries(False).ok
-    assert manager.reload_libraries(True).ok
+    assert not outcome.success and "stop it before unloading" in outcome.message
+    assert not manager.reload_libraries(False).success
+    assert manager.reload_libraries(True).success
     assert manager.controllers() == []
-    assert not manager.unload("joint_state_controller").ok
+    assert not manager.unload("joint_state_controller").success
 
 
 def test_listeners_follow_the_lifecycle():
@@ -308,9 +308,9 @@ def test_new_controller_types_plug_into_the_registry():
     try:
         text = "traj: {type: %s, joints: [base_link1_joint], required_drive_mode: 8}" % type_name
         manager, driver = make_manager(text)
-        assert manager.load("traj").ok
+        assert manager.load("traj").success
         assert type_name in manager.list_controller_types()[0]
-        assert manager.switch(["traj"], [], cm.STRICT).ok
+        assert manager.switch(["traj"], [], cm.STRICT).success
         assert driver.modes == [(("base_link1_joint",), 8)]
     finally:
         cm._REGISTRY.pop(type_name, None)

@@ -138,11 +138,10 @@ def test_init_resets_configures_starts_and_enables(rig):
 
 def test_ppm_command_moves_the_joint_and_reaches_the_drive(rig):
     d = ppm_ready(rig)
-    j = d.joints[J1]
     rig.drain()
     r = d.set_command(J1, "position", 1000)
     assert r.success, r.message
-    assert until(lambda: abs(j.position - 1000) < 1)
+    assert until(lambda: abs(d.joints[J1].position - 1000) < 1)
     assert rig.read(0x607A) == 1000 and rig.read(0x6061) == 1
     # new set-point edge (bit 4) with change-set-immediately (bit 5)
     cws = [int.from_bytes(data[:2], "little") for data in rig.sent(0x201)]
@@ -199,9 +198,8 @@ def test_bad_commands_are_refused_and_never_reach_the_bus(rig):
     assert "outside 0x607A's range" in d.set_command(J1, "position", 1e6).message
     assert "takes position commands, not velocity" in d.set_command(J1, "velocity", 1).message
     assert "unknown command kind" in d.set_command(J1, "torque", 1).message
-    d.set_limits(J1, JointLimits(lower=-1.0, upper=1.0))
-    assert "outside the joint limits" in d.set_command(J1, "position", 1.5).message
     assert "unknown node" in d.set_command("x", "position", 0).message
+    assert "not a finite number" in d.set_command(J1, "position", 10 ** 400).message
     time.sleep(0.05)
     assert rig.read(0x607A) == before
     assert all(int.from_bytes(data[:4], "little") == before for data in rig.sent(0x301))
@@ -209,18 +207,34 @@ def test_bad_commands_are_refused_and_never_reach_the_bus(rig):
     assert until(lambda: rig.read(0x607A) == 500000)
 
 
+def test_commands_are_saturated_to_the_joint_limits(rig):
+    d = rig.start(defaults={"pos_to_device": "pos*1000", "vel_to_device": "vel*100"})
+    d.set_limits(J1, JointLimits(lower=-1.0, upper=1.0, velocity=0.5))
+    assert d.init().success and d.switch_mode([J1], 1).success
+    r = d.set_command(J1, "position", 1.5)
+    assert r.success and "clipped to the joint limits" in r.message, r.message
+    assert until(lambda: rig.read(0x607A) == 1000)  # the limit, never 1500
+    assert d.set_command(J1, "position", -7).success
+    assert until(lambda: rig.read(0x607A) == -1000)
+    assert d.status()[0]["limits"] == "position [-1, 1], velocity 0.5"
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 2).success
+    assert until(lambda: rig.read(0x60FF) == 50)  # 0.5 * 100, never 200
+    assert d.set_command(J1, "velocity", -0.2).success
+    assert until(lambda: rig.read(0x60FF) == -20)
+
+
 def test_halt_keeps_power_and_recover_does_not_jump(rig):
     d = ppm_ready(rig)
-    j = d.joints[J1]
     assert d.set_command(J1, "position", 200000).success
-    assert until(lambda: j.position > 2000)
+    assert until(lambda: d.joints[J1].position > 2000)
     assert d.halt().success
     assert until(lambda: rig.read(0x6040) & 0x0100)  # halt bit
     assert until(lambda: rig.read(0x6041) & 0x0400)  # halted: standing still
     assert rig.state() == State.OPERATION_ENABLED  # powered
     stopped = rig.read(0x6064)
     assert stopped < 150000
-    assert until(lambda: abs(j.position - rig.read(0x6064)) < 2)
+    assert until(lambda: abs(d.joints[J1].position - rig.read(0x6064)) < 2)
     r = d.set_command(J1, "position", 0)
     assert not r.success and "halted" in r.message
     assert d.recover().success
@@ -236,10 +250,9 @@ def test_halt_keeps_power_and_recover_does_not_jump(rig):
 
 def test_fault_emcy_then_recover(rig):
     d = ppm_ready(rig)
-    j = d.joints[J1]
     rig.sim.inject_fault(1, "emcy", 0x8611)
-    assert until(lambda: j.error is not None)
-    assert "fault" in j.error
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "fault" in d.joints[J1].error
     assert until(lambda: "Following error" in d.status()[0]["last_emcy"])
     assert d.status()[0]["error_register"] != "0x00"
     r = d.set_command(J1, "position", 10)
@@ -248,7 +261,7 @@ def test_fault_emcy_then_recover(rig):
     assert rig.state() == State.FAULT  # no automatic fault reset
     r = d.recover()
     assert r.success, r.message
-    assert rig.state() == State.OPERATION_ENABLED and j.error is None
+    assert rig.state() == State.OPERATION_ENABLED and d.joints[J1].error is None
     assert d.set_command(J1, "position", 10).success
 
 
@@ -272,7 +285,6 @@ def test_shutdown_disables_stops_sync_and_nmt(rig):
 def test_mode_switch_is_generic_and_uses_switching_state(rig, switching_state, through_disabled):
     d = rig.start(defaults={"switching_state": switching_state})
     assert d.init().success
-    j = d.joints[J1]
     for mode in (1, 3, 9, 10, 8, 1):
         rig.drain()
         r = d.switch_mode([J1], mode)
@@ -281,22 +293,21 @@ def test_mode_switch_is_generic_and_uses_switching_state(rig, switching_state, t
         assert rig.state() == State.OPERATION_ENABLED
         cws = [int.from_bytes(data[:2], "little") & 0x8F for data in rig.sent(0x201)]
         assert (0x00 in cws) == through_disabled
-        assert abs(rig.read(0x607A) - j.raw_position) < 5  # target = actual
+        assert abs(rig.read(0x607A) - d.joints[J1].raw_position) < 5  # target = actual
         assert rig.read(0x60FF) == 0 and rig.read(0x6071) == 0
 
 
 def test_velocity_and_cyclic_modes(rig):
     d = rig.start()
     assert d.init().success
-    j = d.joints[J1]
     assert d.switch_mode([J1], 3).success
     assert d.set_command(J1, "velocity", 300).success
-    assert until(lambda: abs(j.velocity - 300) < 5)
+    assert until(lambda: abs(d.joints[J1].velocity - 300) < 5)
     assert rig.read(0x60FF) == 300
     assert d.switch_mode([J1], 9).success
     assert rig.read(0x60FF) == 0  # switching reset the target
     assert d.set_command(J1, "velocity", -200).success
-    assert until(lambda: abs(j.velocity + 200) < 5)
+    assert until(lambda: abs(d.joints[J1].velocity + 200) < 5)
     assert d.switch_mode([J1], 10).success
     assert d.set_command(J1, "effort", 5).success
     assert until(lambda: rig.read(0x6071) == 5)
@@ -306,18 +317,17 @@ def test_cycle_callback_drives_csp(rig):
     d = rig.start()
     assert d.init().success
     assert d.switch_mode([J1], 8).success
-    j = d.joints[J1]
-    start = j.raw_position
+    start = d.joints[J1].raw_position
     targets = []
 
     def ramp(driver):
         goal = start + 20 * len(targets)
         if goal <= start + 2000:
             targets.append(goal)
-            driver.joints[J1].set_command("position", goal)
+            driver.set_command(J1, "position", goal)
     d.add_cycle_callback(ramp)
     assert until(lambda: len(targets) > 100)
-    assert until(lambda: abs(j.position - (start + 2000)) < 20)
+    assert until(lambda: abs(d.joints[J1].position - (start + 2000)) < 20)
     assert rig.read(0x607A) == start + 2000
 
 
@@ -348,11 +358,10 @@ def test_homing_at_init(rig):
 
 def test_heartbeat_loss_is_an_error_until_recover(rig):
     d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "200"}})
-    j = d.joints[J1]
-    assert j.heartbeat_ms == 200
+    assert d.joints[J1].heartbeat_ms == 200
     rig.sim.inject_fault(1, "heartbeat_stop")
-    assert until(lambda: j.error is not None, 2.0)
-    assert "heartbeat lost" in j.error and d.status()[0]["nmt_state"] == "LOST"
+    assert until(lambda: d.joints[J1].error is not None, 2.0)
+    assert "heartbeat lost" in d.joints[J1].error and d.status()[0]["nmt_state"] == "LOST"
     assert not d.set_command(J1, "position", 1).success
     rig.sim.inject_fault(1, "clear")
     assert until(lambda: d.status()[0]["nmt_state"] == "OPERATIONAL", 2.0)
@@ -363,12 +372,11 @@ def test_heartbeat_loss_is_an_error_until_recover(rig):
 
 def test_reboot_is_detected_and_recover_reconfigures(rig):
     d = ppm_ready(rig, defaults={"dcf_overlay": {"6065": "2345"}})
-    j = d.joints[J1]
     assert rig.read(0x6065) == 2345
     rig.sim.call(lambda: rig.sim.nodes[1].store.set(0x6065, 0, 1))
     rig.sim.inject_fault(1, "reboot")
-    assert until(lambda: j.error is not None)
-    assert "rebooted" in j.error
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "rebooted" in d.joints[J1].error
     r = d.recover()
     assert r.success, r.message
     assert rig.read(0x6065) == 2345  # configuration written again
@@ -442,14 +450,13 @@ def test_vendor_dcf_unedited(rig):
 @pytest.mark.filterwarnings("ignore::pytest.PytestUnhandledThreadExceptionWarning")
 def test_bus_failure_puts_joints_in_error_and_recover_brings_them_back(rig):
     d = ppm_ready(rig)
-    j = d.joints[J1]
     real_send = d.bus.send
 
     def broken(msg, timeout=None):
         raise can.CanOperationError("Network is down")
     d.bus.send = broken
-    assert until(lambda: j.error is not None)
-    assert "bus error" in j.error and "Network is down" in d.status()[0]["error"]
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "bus error" in d.joints[J1].error and "Network is down" in d.status()[0]["error"]
     assert not d.set_command(J1, "position", 1).success
     d.bus.send = real_send
     r = d.recover()
@@ -474,11 +481,10 @@ def test_before_init(rig):
 
 def test_silent_node_without_heartbeat_is_caught_by_the_pdo_watchdog(rig):
     d = ppm_ready(rig)  # the DCF's 0x1017 is 0: no heartbeat to watch
-    j = d.joints[J1]
-    assert j.heartbeat_ms == 0
+    assert d.joints[J1].heartbeat_ms == 0
     rig.sim.inject_fault(1, "silent")
-    assert until(lambda: j.error is not None)
-    assert "no statusword TxPDO" in j.error and d.status()[0]["nmt_state"] == "LOST"
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "no statusword TxPDO" in d.joints[J1].error and d.status()[0]["nmt_state"] == "LOST"
     assert not d.set_command(J1, "position", 1).success
     rig.sim.inject_fault(1, "clear")
     r = d.recover()  # configures the node again: it may have lost everything
@@ -489,9 +495,8 @@ def test_silent_node_without_heartbeat_is_caught_by_the_pdo_watchdog(rig):
 
 def test_node_stopped_by_someone_else_is_an_error(rig):
     d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "100"}})
-    j = d.joints[J1]
     rig.sniffer.send(can.Message(arbitration_id=0x000, data=b"\x02\x01", is_extended_id=False))
-    assert until(lambda: j.error is not None)
-    assert "left OPERATIONAL" in j.error
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "left OPERATIONAL" in d.joints[J1].error
     assert d.recover().success
     assert rig.state() == State.OPERATION_ENABLED

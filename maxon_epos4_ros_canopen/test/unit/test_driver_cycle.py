@@ -10,8 +10,10 @@ import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
 from maxon_epos4_ros_canopen.config import load_config
-from maxon_epos4_ros_canopen.driver.joint import Joint
+from maxon_epos4_ros_canopen.driver.axis import REFRESH_CYCLES, Axis, Binding
+from maxon_epos4_ros_canopen.driver.pdo import RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from maxon_epos4_ros_canopen.driver.plan import plan_node
+from maxon_epos4_ros_canopen.limits import JointLimits
 
 DCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "epos4_node1.dcf")
 
@@ -27,6 +29,9 @@ SW_QUICK_STOP = 0x0617
 
 
 class Harness:
+    """One axis fed with TPDO frames through the receiver, as the CAN
+    notifier would; what it sends is recorded frame by frame."""
+
     def __init__(self, **node):
         params = {"sync": {"interval_ms": 10},
                   "nodes": {"n1": dict({"id": 1, "name": "j", "eds_file": DCF, "pos_to_device": "pos",
@@ -34,38 +39,46 @@ class Harness:
                                         "vel_from_device": "obj606C"}, **node)}}
         cfg = load_config(params, "test")
         od = canopen.import_od(DCF, 1)
-        self.network = canopen.Network()
-        node_ = canopen.RemoteNode(1, od)
-        self.network.add_node(node_)
-        node_.tpdo.read(from_od=True)
-        node_.rpdo.read(from_od=True)
-        self.node = node_
-        self.joint = Joint(cfg.nodes[0], od, plan_node(cfg.nodes[0], od, cfg.sync, "test"))
-        self.joint.bind(node_)
+        plan = plan_node(cfg.nodes[0], od, cfg.sync, "test")
+        rx = tuple(RxPdo(od, m) for m in enabled_maps(plan.rx))
+        tx = tuple(TxPdo(od, m) for m in enabled_maps(plan.tx))
+        self.axis = Axis(cfg.nodes[0], od, plan, JointLimits())
+        self.axis.attach(Binding(rx, tx, {k: 0 for r in rx for k in r.keys}, {}, 0, 0, 0.0), 0, 0.0)
+        self.receiver = TpdoReceiver([t.cob_id for t in tx])
+        self.payload = {0x181: struct.pack("<Hb", SW_SWITCH_ON_DISABLED, 1), 0x281: struct.pack("<ii", 0, 0),
+                        0x381: struct.pack("<ii", 0, 0)}
         self.frames = []
-        self.tpdo(sw=SW_SWITCH_ON_DISABLED, mode=1, pos=0, vel=0)
+        self.last = {}
+        self.n = 0
 
     def tpdo(self, sw=None, mode=None, pos=None, vel=None):
         """What the drive's TxPDOs 1-3 carry (mapping of the project's DCF)."""
-        t1, t2, t3 = (self.node.tpdo.map[n] for n in (1, 2, 3))
         if sw is not None:
-            t1.data = bytearray(struct.pack("<Hb", sw, mode if mode is not None else t1.data[2]))
+            old_mode = struct.unpack_from("<b", self.payload[0x181], 2)[0]
+            self.payload[0x181] = struct.pack("<Hb", sw, mode if mode is not None else old_mode)
         if vel is not None:
-            t2.data = bytearray(struct.pack("<ii", 0, vel))
+            self.payload[0x281] = struct.pack("<ii", 0, vel)
         if pos is not None:
-            t3.data = bytearray(struct.pack("<ii", pos, 0))
+            self.payload[0x381] = struct.pack("<ii", pos, 0)
 
     def cycle(self, **tpdo):
+        self.n += 1
         if tpdo:
             self.tpdo(**tpdo)
-        self.joint.read()
+        for cob, data in self.payload.items():
+            self.receiver.on_frame(cob, data, 0.0)  # a fresh frame every SYNC
+        self.axis.read(self.receiver, float(self.n), self.n)
         sent = []
-        self.joint.write(lambda cob, data: sent.append((cob, data)))
+        self.axis.write(lambda cob, data: sent.append((cob, data)))
         self.frames.extend(sent)
+        self.last.update(sent)
         return dict(sent)
 
     def controlword(self):
-        return struct.unpack_from("<H", self.node.rpdo.map[1].data)[0]
+        return struct.unpack_from("<H", self.last[0x201])[0]
+
+    def target(self):
+        return struct.unpack_from("<i", self.last[0x301])[0]
 
 
 @pytest.fixture
@@ -74,7 +87,7 @@ def h():
 
 
 def test_enable_walks_the_state_machine(h):
-    j = h.joint
+    j = h.axis
     j.request_state(State.OPERATION_ENABLED)
     expected = [(SW_SWITCH_ON_DISABLED, 0x0006), (SW_READY, 0x0007), (SW_SWITCHED_ON, 0x000F)]
     for sw, cw in expected:
@@ -86,7 +99,7 @@ def test_enable_walks_the_state_machine(h):
 
 
 def test_fault_reset_only_when_asked_and_as_a_rising_edge(h):
-    j = h.joint
+    j = h.axis
     j.request_state(State.OPERATION_ENABLED)
     h.cycle(sw=SW_FAULT)
     assert h.controlword() == 0x0000  # no fault reset unless recover/init asks
@@ -101,7 +114,7 @@ def test_fault_reset_only_when_asked_and_as_a_rising_edge(h):
 
 
 def test_leaving_the_reached_state_is_an_error_not_a_retry(h):
-    j = h.joint
+    j = h.axis
     j.request_state(State.OPERATION_ENABLED)
     for sw in (SW_SWITCH_ON_DISABLED, SW_READY, SW_SWITCHED_ON, SW_ENABLED):
         h.cycle(sw=sw, pos=1234)
@@ -109,17 +122,19 @@ def test_leaving_the_reached_state_is_an_error_not_a_retry(h):
     assert j.error and "quick_stop_active" in j.error
     assert j.target_state is None and j.halted
     h.cycle(sw=SW_SWITCH_ON_DISABLED)
-    assert h.controlword() == 0x0000  # holds: does not re-enable by itself
+    # holds the state it reached, with the halt bit: neither re-enables by
+    # itself (no shutdown 0x0006) nor cuts the power of a drive that may move
+    assert h.controlword() == 0x010F
 
 
 def ppm_enabled(h):
-    j = h.joint
+    j = h.axis
     j.request_state(State.OPERATION_ENABLED)
     for sw in (SW_SWITCH_ON_DISABLED, SW_READY, SW_SWITCHED_ON, SW_ENABLED):
         h.cycle(sw=sw, mode=1, pos=500)
     j.ready = True
     j.active_mode = 1
-    j.reset_targets()
+    j.hold(500)
     # the reset target goes through the handshake once
     for sw in (SW_ENABLED, SW_ENABLED, SW_ENABLED_ACK, SW_ENABLED):
         h.cycle(sw=sw)
@@ -129,7 +144,7 @@ def ppm_enabled(h):
 
 def test_profile_position_handshake_frame_by_frame(h):
     j = ppm_enabled(h)
-    assert j.set_command("position", 1000).success
+    assert j.apply_command("position", 1000).success
     out = h.cycle(sw=SW_ENABLED)
     # 1: the target goes out first (RxPDO 2 = 0x607A + 0x6081), no edge yet
     assert struct.unpack_from("<i", out[0x301])[0] == 1000
@@ -143,15 +158,14 @@ def test_profile_position_handshake_frame_by_frame(h):
     h.cycle(sw=SW_ENABLED_ACK)
     assert h.controlword() & 0x0010 == 0
     # a new target waits for the acknowledge to drop
-    assert j.set_command("position", 2000).success
+    assert j.apply_command("position", 2000).success
     h.cycle(sw=SW_ENABLED_ACK)
-    assert struct.unpack_from("<i", h.node.rpdo.map[2].data)[0] == 1000
+    assert h.target() == 1000
     h.cycle(sw=SW_ENABLED)
-    assert struct.unpack_from("<i", h.node.rpdo.map[2].data)[0] == 2000
+    assert h.target() == 2000
 
 
 def test_controlword_pdo_every_cycle_others_on_change_and_refresh(h):
-    from maxon_epos4_ros_canopen.driver.joint import REFRESH_CYCLES
     ppm_enabled(h)
     h.cycle(sw=SW_ENABLED)
     h.cycle(sw=SW_ENABLED)
@@ -165,12 +179,12 @@ def test_controlword_pdo_every_cycle_others_on_change_and_refresh(h):
 
 
 def test_cyclic_target_goes_out_every_cycle(h):
-    j = h.joint
+    j = h.axis
     j.request_state(State.OPERATION_ENABLED)
     for sw in (SW_SWITCH_ON_DISABLED, SW_READY, SW_SWITCHED_ON, SW_ENABLED):
         h.cycle(sw=sw, mode=8, pos=0)
     j.ready, j.active_mode = True, 8
-    assert j.set_command("position", 10).success
+    assert j.apply_command("position", 10).success
     for _ in range(3):
         out = h.cycle(sw=SW_ENABLED)
         assert struct.unpack_from("<i", out[0x301])[0] == 10
@@ -181,22 +195,78 @@ def test_halt_sets_bit_8_and_refuses_commands(h):
     j.halted = True
     h.cycle(sw=SW_ENABLED)
     assert h.controlword() & 0x0100
-    r = j.set_command("position", 5)
+    r = j.apply_command("position", 5)
     assert not r.success and "halted" in r.message
 
 
 def test_readings_follow_the_from_device_expressions():
     h = Harness(pos_from_device="obj6064/2", vel_from_device="smooth(obj606C, vel, 0.5)")
     h.cycle(pos=1000, vel=100)
-    assert h.joint.position == 500
-    assert h.joint.velocity == 100      # the first value passes (old is NaN)
+    assert h.axis.position == 500
+    assert h.axis.velocity == 100      # the first value passes (old is NaN)
     h.cycle(vel=200)
-    assert h.joint.velocity == 150
-    assert math.isclose(h.joint.effort, 0.0)
+    assert h.axis.velocity == 150
+    assert math.isclose(h.axis.effort, 0.0)
 
 
 def test_short_pdo_keeps_the_last_readings(h):
     h.cycle(pos=1000)
-    h.node.tpdo.map[3].data = bytearray(b"\x01")
+    h.payload[0x381] = b"\x01"
     h.cycle()
-    assert h.joint.position == 1000
+    assert h.axis.position == 1000
+    assert h.axis.counters["bad_tpdo"] == 1
+
+
+def enabled(h, mode=1):
+    j = h.axis
+    j.request_state(State.OPERATION_ENABLED)
+    for sw in (SW_SWITCH_ON_DISABLED, SW_READY, SW_SWITCHED_ON, SW_ENABLED):
+        h.cycle(sw=sw, mode=mode, pos=0)
+    j.ready = True
+    j.set_mode(mode, 0)
+    return j
+
+
+def test_one_forged_fault_statusword_never_cuts_the_power(h):
+    j = enabled(h, mode=3)
+    assert j.apply_command("velocity", 900).success
+    h.cycle(sw=SW_ENABLED, vel=900)
+    h.cycle(sw=SW_FAULT)              # one frame says fault
+    assert j.error and "fault" in j.error
+    words = [h.controlword()]
+    for _ in range(5):                # the drive goes on reporting enabled
+        h.cycle(sw=SW_ENABLED)
+        words.append(h.controlword())
+    # no disable voltage (0x0000) nor any other power-off: halt bit, enabled
+    assert words == [0x010F] * 6
+    assert not j.apply_command("velocity", 900).success
+
+
+def test_a_forged_position_never_becomes_a_target(h):
+    j = enabled(h, mode=8)
+    assert j.apply_command("position", 100).success
+    h.cycle(sw=SW_ENABLED, pos=100)
+    assert h.target() == 100
+    h.cycle(sw=SW_ENABLED, pos=798396)         # forged TxPDO3
+    j.on_heartbeat(b"\x04", 100.0)            # then a STOPPED heartbeat
+    j.watch(100.0, h.n, 0.01, 1.5, 50)
+    assert j.error and "STOPPED" in j.error
+    for _ in range(3):
+        h.cycle(sw=SW_ENABLED)
+        assert h.target() == 100               # the last target the driver sent
+
+
+@pytest.mark.parametrize("frame, counter", [
+    (b"\x78", "undefined_nmt_state"), (b"", "bad_heartbeat"), (b"\x05\x00", "bad_heartbeat")])
+def test_odd_heartbeats_are_counted_not_taken(h, frame, counter):
+    j = enabled(h)
+    j.on_heartbeat(frame, 50.0)
+    assert j.counters[counter] == 1 and j.nmt_state == "OPERATIONAL"
+
+
+def test_undefined_statusword_and_short_emcy_are_counted(h):
+    j = enabled(h)
+    h.cycle(sw=0x0003)                 # no CiA 402 state has these bits
+    assert j.counters["undefined_statusword"] == 1 and j.state == State.OPERATION_ENABLED and not j.error
+    j.on_emcy(b"\x10")
+    assert j.counters["bad_emcy"] == 1

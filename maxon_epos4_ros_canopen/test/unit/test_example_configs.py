@@ -79,9 +79,9 @@ def test_layers_load_and_every_spawned_controller_loads(launch):
     for name in parts["spawn"][1:]:
         assert name.startswith(prefix), name
         outcome = manager.load(name)
-        assert outcome.ok, outcome.message
+        assert outcome.success, outcome.message
     for controller in config.controllers:
-        assert manager.load(controller.name).ok or manager.get(prefix + controller.name)
+        assert manager.load(controller.name).success or manager.get(prefix + controller.name)
 
 
 def urdf_joints(path: str) -> List[str]:

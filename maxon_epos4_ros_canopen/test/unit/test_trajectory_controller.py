@@ -84,12 +84,12 @@ class Clock:
 def started(period=(10, -3)):
     driver = FakeDriver(period)
     manager = ControllerManager(driver, J, PARAMS.get)
-    assert manager.load("joint_trajectory_controller").ok
+    assert manager.load("joint_trajectory_controller").success
     ctrl = manager.get("joint_trajectory_controller")
     clock = Clock()
     ctrl.clock = clock
     outcome = manager.switch(["joint_trajectory_controller"], [])
-    assert outcome.ok, outcome.message
+    assert outcome.success, outcome.message
     results = []
     ctrl.on_outcome.append(results.append)
     return driver, ctrl, clock, results
@@ -219,7 +219,7 @@ def test_refused_command_aborts_the_goal():
 def test_bad_controller_parameters_fail_to_load(params, text):
     manager = ControllerManager(FakeDriver(), J, {"jtc": params}.get)
     outcome = manager.load("jtc")
-    assert not outcome.ok and text in outcome.message
+    assert not outcome.success and text in outcome.message
 
 
 def test_goals_beyond_the_drivers_joint_limits_are_invalid():
@@ -227,7 +227,7 @@ def test_goals_beyond_the_drivers_joint_limits_are_invalid():
     driver.joints[J[0]].limits = SimpleNamespace(lower=-1.0, upper=1.0)
     manager = ControllerManager(driver, J, PARAMS.get)
     manager.load("joint_trajectory_controller")
-    assert manager.switch(["joint_trajectory_controller"], []).ok
+    assert manager.switch(["joint_trajectory_controller"], []).success
     ctrl = manager.get("joint_trajectory_controller")
     with pytest.raises(TrajectoryError) as err:
         ctrl.submit("g", J, [P((1.5, 0.0), (), (), 1.0)], 0.0)

@@ -1,51 +1,185 @@
 """The CANopen master: ros_canopen's driver services on canopen + python-can.
 
-Threads: the service calls (init, halt, recover, shutdown, get/set_object,
-switch_mode) run in the caller's thread, one at a time; the cycle runs in
-its own thread every ``sync/update_ms`` and is the only one that sends
-PDOs and SYNC; canopen's notifier thread delivers TPDOs, heartbeats and
-EMCYs. Services ask the cycle for a state and wait for it (on a condition
-the cycle signals), they never write the controlword themselves.
+Threads and who owns what (docs/driver.md has the picture):
+
+* the cycle thread runs every ``sync/update_ms`` and owns the axes: at the
+  top of each cycle it drains the inbox (commands, state requests from the
+  services, heartbeats and EMCYs from the CAN notifier), reads the latest
+  TPDO frames, publishes an immutable snapshot, runs the cycle callbacks
+  (the trajectory controller), and sends the RxPDOs and SYNC;
+* service calls (init, halt, recover, shutdown, switch_mode, get/set_object)
+  run in their callers' threads, one state-changing service at a time; they
+  talk to the drives over SDO and to the axes only through the inbox, and
+  wait on snapshots;
+* canopen's notifier thread only hands frames over: TPDOs to the receiver's
+  latest-frame slots, everything else to the inbox.
+
+While no cycle runs (before init, after shutdown) the service holding the
+service lock owns the axes; starting the cycle thread hands them over and
+joining it hands them back.
 """
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections import OrderedDict
-from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any, Callable, Dict, Iterable, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import can
 import canopen
-from canopen.emcy import EmcyError
+from canopen.sdo import SdoClient
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import cia402
 from ..cia402 import State
-from ..config import SUPPORTED_DRIVE_MODES, ConfigError, DriverConfig
+from ..config import ConfigError, DriverConfig
+from ..limits import JointLimits, saturate
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_value, encode_value,
                        find_variable, is_readable, is_writable, parse_object_key)
+from ..result import Result, fail, ok
+from ..units import object_variable_name
+from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
+                   initial_snapshot)
 from .bus import HeartbeatProducer, SyncProducer, open_bus
-from .joint import CYCLIC_MODES, HM, Joint, JointLimits
-from .plan import DRIVER_OWNED, HOMING_METHOD, POSITION_ACTUAL, PRODUCER_HEARTBEAT, plan_node
-from .result import Result, fail, ok
-
-try:  # written by the simulator engineer; the driver still works without names
-    from ..epos4_errors import describe as describe_error
-except ImportError:  # pragma: no cover
-    def describe_error(code: int) -> str:
-        return "0x%04X" % code
+from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, mode_of,
+                    supported_modes_text)
+from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
+from .plan import (DRIVER_OWNED, HOMING_METHOD, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
+                   NodePlan, plan_node)
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
-NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
 NMT_START, NMT_STOP, NMT_RESET_NODE = 0x01, 0x02, 0x81
-CycleCallback = Callable[["Driver"], None]
 _PDO_MISSING_CYCLES = 50
+_PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
+CycleCallback = Callable[["Driver"], None]
+
+# Objects set_object refuses, and why: the driver configures or sends them
+# itself, or writing them would act on the drive's memory.
+_REFUSED_RANGES = (
+    (0x1400, 0x1BFF, "a PDO communication or mapping parameter: the driver configures its PDOs itself"),
+    (0x1010, 0x1011, "store/restore parameters: the driver does not write the drive's memory"),
+    (0x1005, 0x1005, "the SYNC COB-ID: the driver's SYNC depends on it"),
+    (0x1200, 0x12FF, "an SDO server parameter: the driver talks over it"),
+)
 
 
 class _InitError(Exception):
     pass
+
+
+# ----------------------------------------------------------------- messages
+@dataclass(frozen=True)
+class _Command:
+    axis: str
+    kind: str
+    value: float
+
+
+@dataclass(frozen=True)
+class _StateRequest:
+    axes: Tuple[str, ...]
+    state: Optional[State]
+    fault_reset: bool = False
+
+
+@dataclass(frozen=True)
+class _StopInPlace:
+    axes: Tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _Hold:
+    axis: str
+    raw_position: int
+
+
+@dataclass(frozen=True)
+class _SetMode:
+    axis: str
+    mode: int
+    raw_position: int
+
+
+@dataclass(frozen=True)
+class _Homing:
+    axis: str
+    on: bool
+
+
+@dataclass(frozen=True)
+class _Ready:
+    axes: Tuple[str, ...]
+    ready: bool
+
+
+@dataclass(frozen=True)
+class _ClearError:
+    axis: str
+    raw_position: int
+
+
+@dataclass(frozen=True)
+class _Detach:
+    axis: str
+
+
+@dataclass(frozen=True)
+class _Attach:
+    axis: str
+    binding: Binding
+
+
+@dataclass(frozen=True)
+class _SetOutput:
+    axis: str
+    key: ObjectKey
+    value: int
+
+
+@dataclass(frozen=True)
+class _SetHeartbeat:
+    axis: str
+    ms: int
+
+
+@dataclass(frozen=True)
+class _SetLimits:
+    axis: str
+    limits: JointLimits
+
+
+@dataclass(frozen=True)
+class _Heartbeat:
+    node_id: int
+    data: bytes
+    time: float
+
+
+@dataclass(frozen=True)
+class _Emcy:
+    node_id: int
+    data: bytes
+
+
+class DriverSnapshot(NamedTuple):
+    """Everything the other threads may know of the axes, as of one cycle."""
+    cycle: int
+    axes: Mapping[str, AxisSnapshot]
+    bus_error: Optional[str]
+    foreign_frames: int
+
+
+class _Node(NamedTuple):
+    """What the driver knows of a node before any frame: immutable."""
+    cfg: Any
+    od: Any
+    plan: NodePlan
+    converter: Converter   # commands to device units (immutable)
 
 
 class Driver:
@@ -69,68 +203,217 @@ class Driver:
         self.state_timeout = state_timeout
         self.homing_timeout = homing_timeout
         self._external_bus = bus
-        self.joints: "OrderedDict[str, Joint]" = OrderedDict()
+        self._nodes: "OrderedDict[str, _Node]" = OrderedDict()
         for n in config.nodes:
             try:
                 od = canopen.import_od(n.eds_file, n.node_id)
             except Exception as e:  # canopen raises many kinds on a bad file
                 raise ConfigError(config.source, "nodes/%s/eds_file" % n.key,
                                   "cannot read %s: %s" % (n.eds_file, e)) from None
-            self.joints[n.name] = Joint(n, od, plan_node(n, od, config.sync, config.source))
-        self._by_key = {j.cfg.key: j for j in self.joints.values()}
-        self._joint_list = list(self.joints.values())
+            plan = plan_node(n, od, config.sync, config.source)
+            try:
+                for m in enabled_maps(plan.rx):
+                    RxPdo(od, m)
+                for m in enabled_maps(plan.tx):
+                    TxPdo(od, m)
+            except PdoLayoutError as e:
+                raise ConfigError(config.source, "nodes/%s/eds_file" % n.key, str(e)) from None
+            self._nodes[n.name] = _Node(n, od, plan, Converter(n, od))
+        self._by_key = {node.cfg.key: name for name, node in self._nodes.items()}
+        self._limits: Mapping[str, JointLimits] = MappingProxyType({name: JointLimits() for name in self._nodes})
         self._period = config.sync.update_ms / 1000.0
         # TxPDOs come every SYNC (or event period): 50 of them missing, and
         # at least 1.5 s, is an error.
         self._pdo_timeout = max(1.5, _PDO_MISSING_CYCLES * max(config.sync.interval_ms, config.sync.update_ms) / 1000.0)
-        self._lock = threading.RLock()
+        self._snapshot = DriverSnapshot(0, MappingProxyType(
+            {name: initial_snapshot(node.cfg, node.plan, JointLimits()) for name, node in self._nodes.items()}),
+            None, 0)
+        self._inbox: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
         self._cond = threading.Condition()
         self._service = threading.Lock()
-        self._callbacks: List[CycleCallback] = []
+        self._sdo_locks = {name: threading.Lock() for name in self._nodes}
+        self._cache: Dict[str, Dict[ObjectKey, Any]] = {name: {} for name in self._nodes}  # under the SDO lock
+        self._callbacks: Tuple[CycleCallback, ...] = ()
+        self._requested_modes: Dict[str, Optional[int]] = {name: None for name in self._nodes}
+        self._initial_env: Dict[str, Mapping[str, float]] = {name: {} for name in self._nodes}
         self.initialized = False
         self.bus: Optional[can.BusABC] = None
         self.network: Optional[canopen.Network] = None
+        self._sdo: Mapping[str, SdoClient] = MappingProxyType({})
+        self._receiver: Optional[TpdoReceiver] = None
+        self._boot: Dict[int, threading.Event] = {}
         self.sync: Optional[SyncProducer] = None
         self._sync_in_cycle = False
         self._heartbeat: Optional[HeartbeatProducer] = None
         self._thread: Optional[threading.Thread] = None
+        self._cycle_ident: Optional[int] = None
         self._stop = threading.Event()
         self._abort = threading.Event()  # close(): cut service waits short
-        self.cycles = 0
+        # owned by the cycle thread while it runs
+        self._axes: List[Axis] = []
+        self._axis: Dict[str, Axis] = {}
+        self._by_node_id: Dict[int, Axis] = {}
+        self._cycle_no = 0
         self.overruns = 0
         self.bus_error: Optional[str] = None
         self._send_failures = 0
-        self._boot: Dict[int, threading.Event] = {}
+        self._foreign_frames = [0]  # written by the notifier thread only
 
     # ============================================================ lookup
-    def joint(self, name: str) -> Optional[Joint]:
-        """A joint by its name (the node's ``name``) or its node key (``node1``)."""
-        return self.joints.get(name) or self._by_key.get(name)
+    @property
+    def joints(self) -> Mapping[str, AxisSnapshot]:
+        """name -> the latest immutable snapshot of each joint."""
+        return self._snapshot.axes
 
-    def _unknown(self, name: str) -> Result:
-        return fail("unknown node %r (known: %s)" % (name, ", ".join(self.joints)))
+    @property
+    def cycles(self) -> int:
+        return self._snapshot.cycle
+
+    def snapshot(self) -> DriverSnapshot:
+        return self._snapshot
+
+    def _name(self, name: str) -> Optional[str]:
+        if name in self._nodes:
+            return name
+        return self._by_key.get(name) if isinstance(name, str) else None
+
+    def joint(self, name: str) -> Optional[AxisSnapshot]:
+        """A joint's snapshot by its name (the node's ``name``) or its node key (``node1``)."""
+        n = self._name(name)
+        return None if n is None else self._snapshot.axes[n]
+
+    def _unknown(self, name: Any) -> Result:
+        return fail("unknown node %r (known: %s)" % (name, ", ".join(self._nodes)))
 
     def set_limits(self, name: str, limits: JointLimits) -> None:
-        j = self.joint(name)
-        if j is None:
+        """Joint limits (ROS units) every command is saturated to."""
+        n = self._name(name)
+        if n is None:
             raise KeyError(name)
-        j.limits = limits
+        new = dict(self._limits)
+        new[n] = limits
+        self._limits = MappingProxyType(new)
+        self._post(_SetLimits(n, limits))
+
+    def limits(self, name: str) -> JointLimits:
+        return self._limits[self._name(name) or name]
 
     def add_cycle_callback(self, fn: CycleCallback) -> None:
-        """fn(driver) runs every cycle, under the driver lock, after the
-        readings are fresh and before the RPDOs go out (CSP trajectories)."""
-        self._callbacks.append(fn)
+        """fn(driver) runs every cycle in the cycle thread, after the readings
+        are fresh (``driver.joints``) and before the RPDOs go out; its
+        ``set_command`` calls take effect in the same cycle (CSP trajectories)."""
+        self._callbacks = self._callbacks + (fn,)
 
     def remove_cycle_callback(self, fn: CycleCallback) -> None:
-        if fn in self._callbacks:
-            self._callbacks.remove(fn)
+        self._callbacks = tuple(c for c in self._callbacks if c is not fn)
 
-    def set_command(self, name: str, kind: str, value: float) -> Result:
-        j = self.joint(name)
-        if j is None:
+    # ========================================================== commands
+    def set_command(self, name: str, kind: str, value: Any) -> Result:
+        """A controller's command for a joint, in ROS units. Checked at once
+        against the latest snapshot and again when the cycle applies it; the
+        last command before a cycle wins. Saturated to the joint limits."""
+        n = self._name(name)
+        if n is None:
             return self._unknown(name)
-        with self._lock:
-            return j.set_command(kind, value)
+        if threading.get_ident() == self._cycle_ident:
+            axis = self._axis.get(n)
+            if axis is None:
+                return fail("%s is not initialized: call init" % n)
+            return axis.apply_command(kind, value)
+        snap = self._snapshot.axes[n]
+        problem = command_problem(snap, kind, value)
+        if problem:
+            return fail(problem)
+        limits = self._limits[n]
+        clipped_value, clipped = saturate(limits, kind, float(value))
+        _, err = self._nodes[n].converter.convert(kind, clipped_value, env_for_check(snap, self._initial_env[n]))
+        if err:
+            return fail(err)
+        self._inbox.put(_Command(n, kind, float(value)))
+        if clipped:
+            return ok("clipped to the joint limits (%s)" % limits.describe())
+        return ok()
+
+    # ============================================================ inbox
+    def _post(self, *messages: Any) -> int:
+        """Send messages to the cycle; returns the cycle number after which
+        a snapshot shows their effect (see _wait)."""
+        seq = self._cycle_no
+        for m in messages:
+            self._inbox.put(m)
+        return seq
+
+    def _drain(self) -> None:
+        batch = []
+        inbox = self._inbox
+        while True:
+            try:
+                batch.append(inbox.get_nowait())
+            except queue.Empty:
+                break
+        if not batch:
+            return
+        # The last command of a joint in this batch is the one that counts;
+        # everything else is handled in the order it came.
+        last_command: Dict[str, int] = {}
+        for i, m in enumerate(batch):
+            if type(m) is _Command:
+                last_command[m.axis] = i
+        for i, m in enumerate(batch):
+            try:
+                if type(m) is _Command:
+                    if last_command[m.axis] == i:
+                        axis = self._axis.get(m.axis)
+                        if axis is not None:
+                            axis.apply_command(m.kind, m.value)
+                    continue
+                self._handle(m)
+            except Exception:
+                log.exception("driver: handling %r failed", m)
+
+    def _handle(self, m: Any) -> None:
+        kind = type(m)
+        if kind is _Heartbeat:
+            axis = self._by_node_id.get(m.node_id)
+            if axis is not None:
+                axis.on_heartbeat(m.data, m.time)
+        elif kind is _Emcy:
+            axis = self._by_node_id.get(m.node_id)
+            if axis is not None:
+                axis.on_emcy(m.data)
+        elif kind is _StateRequest:
+            for name in m.axes:
+                self._axis[name].request_state(m.state, m.fault_reset)
+        elif kind is _StopInPlace:
+            for name in m.axes:
+                self._axis[name].stop_in_place()
+        elif kind is _Hold:
+            self._axis[m.axis].hold(m.raw_position)
+        elif kind is _SetMode:
+            self._axis[m.axis].set_mode(m.mode, m.raw_position)
+        elif kind is _Homing:
+            self._axis[m.axis].homing = m.on
+        elif kind is _Ready:
+            for name in m.axes:
+                self._axis[name].ready = m.ready
+        elif kind is _ClearError:
+            axis = self._axis[m.axis]
+            axis.clear_error()
+            axis.hold(m.raw_position)
+        elif kind is _Detach:
+            self._axis[m.axis].detach()
+        elif kind is _Attach:
+            self._axis[m.axis].attach(m.binding, self._cycle_no, time.monotonic())
+        elif kind is _SetOutput:
+            self._axis[m.axis].set_output(m.key, m.value)
+        elif kind is _SetHeartbeat:
+            axis = self._axis[m.axis]
+            axis.heartbeat_ms = m.ms
+            axis.last_heartbeat = time.monotonic()
+        elif kind is _SetLimits:
+            axis = self._axis.get(m.axis)
+            if axis is not None:
+                axis.limits = m.limits
 
     # ====================================================== bus plumbing
     def _open(self) -> None:
@@ -141,80 +424,118 @@ class Driver:
                 self.bus = open_bus(self.config.bus)
             except Exception as e:  # OSError, CanError, ValueError from python-can
                 raise _InitError("cannot open CAN device %r: %s" % (self.config.bus.device, e)) from None
-        self.network = canopen.Network(self.bus)
-        self.network.connect()
-        for j in self.joints.values():
-            node = canopen.RemoteNode(j.node_id, j.od)
-            node.sdo.RESPONSE_TIMEOUT = self.sdo_timeout
-            self.network.add_node(node)
-            event = self._boot.setdefault(j.node_id, threading.Event())
-            node.nmt.add_heartbeat_callback(self._heartbeat_callback(j, event))
-            node.emcy.add_callback(self._emcy_callback(j))
-            j.node = node
+        network = canopen.Network(self.bus)
+        network.connect()
+        self.network = network
+        self._receiver = receiver = TpdoReceiver([m.cob_id for node in self._nodes.values()
+                                                  for m in enabled_maps(node.plan.tx)])
+        for cob in receiver.cob_ids:
+            network.subscribe(cob, receiver.on_frame)
+        if not self.config.bus.loopback:
+            # With loopback off the driver never hears its own frames: one on
+            # its RxPDO COB-IDs comes from another master. It is counted and
+            # otherwise ignored.
+            for node in self._nodes.values():
+                for m in enabled_maps(node.plan.rx):
+                    network.subscribe(m.cob_id, self._on_foreign_frame)
+        sdo = {}
+        inbox = self._inbox
+        for name, node in self._nodes.items():
+            nid = node.cfg.node_id
+            client = SdoClient(0x600 + nid, 0x580 + nid, node.od)
+            client.network = network
+            client.RESPONSE_TIMEOUT = self.sdo_timeout
+            network.subscribe(0x580 + nid, client.on_response)
+            sdo[name] = client
+            boot = self._boot.setdefault(nid, threading.Event())
+
+            def on_heartbeat(can_id: int, data: Any, _ts: float, boot: threading.Event = boot) -> None:
+                payload = bytes(data)
+                if payload == b"\x00":
+                    boot.set()
+                inbox.put(_Heartbeat(can_id - 0x700, payload, time.monotonic()))
+
+            def on_emcy(can_id: int, data: Any, _ts: float) -> None:
+                inbox.put(_Emcy(can_id - 0x80, bytes(data)))
+            network.subscribe(0x700 + nid, on_heartbeat)
+            network.subscribe(0x80 + nid, on_emcy)
+        self._sdo = MappingProxyType(sdo)
         if self.config.heartbeat is not None:
             self._heartbeat = HeartbeatProducer(self.bus, self.config.heartbeat)
             self._heartbeat.start()
 
+    def _on_foreign_frame(self, _can_id: int, _data: Any, _ts: float) -> None:
+        self._foreign_frames[0] += 1
+
     def _close(self) -> None:
+        for what, fn in (("heartbeat producer", self._stop_heartbeat), ("CAN network", self._close_network)):
+            try:
+                fn()
+            except Exception as e:  # closing must go on whatever a part says
+                log.warning("closing the %s: %s", what, e)
+
+    def _stop_heartbeat(self) -> None:
         if self._heartbeat is not None:
-            self._heartbeat.stop()
-            self._heartbeat = None
-        if self.network is not None:
-            if self.network.notifier is not None:
-                self.network.notifier.stop(1.0)
-            self.network = None
-        if self.bus is not None and self._external_bus is None:
-            self.bus.shutdown()
-        self.bus = None
+            heartbeat, self._heartbeat = self._heartbeat, None
+            heartbeat.stop()
 
-    def _heartbeat_callback(self, j: Joint, boot: threading.Event) -> Callable[[int], None]:
-        def on_heartbeat(state: int) -> None:
-            j.last_heartbeat = time.time()
-            j.nmt_state = NMT_NAMES.get(state, "0x%02X" % state)
-            if state == 0:
-                boot.set()
-                if j.ready:
-                    j.rebooted = True
-        return on_heartbeat
-
-    def _emcy_callback(self, j: Joint) -> Callable[[EmcyError], None]:
-        def on_emcy(emcy: EmcyError) -> None:
-            j.error_register = emcy.register
-            if emcy.code == 0:
-                log.info("%s (node %d): EMCY error reset", j.name, j.node_id)
-                return
-            text = "%s (error register 0x%02X)" % (describe_error(emcy.code), emcy.register)
-            j.last_emcy = text
-            log.error("%s (node %d): EMCY %s", j.name, j.node_id, text)
-        return on_emcy
+    def _close_network(self) -> None:
+        network, self.network = self.network, None
+        self._sdo = MappingProxyType({})
+        if network is not None and network.notifier is not None:
+            network.notifier.stop(1.0)
+        bus, self.bus = self.bus, None
+        if bus is not None and self._external_bus is None:
+            bus.shutdown()
 
     def _send(self, cob_id: int, data: bytes) -> None:
-        self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        try:
+            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+        except (can.CanError, OSError) as e:
+            self._send_error = e
+
+    def _nmt(self, command: int, node_id: int) -> None:
+        # Raw NMT frames: canopen's NmtMaster looks its state up in a table
+        # and raises on a state byte CiA 301 does not define.
+        self.network.send_message(0, bytes([command, node_id]))
 
     # ============================================================= cycle
-    def _start_cycle(self) -> None:
+    def _start_cycle(self, axes: List[Axis]) -> None:
         sync = self.config.sync
         if sync.interval_ms > 0:
             self.sync = SyncProducer(self.bus, sync.overflow)
             self._sync_in_cycle = sync.interval_ms == sync.update_ms
             if not self._sync_in_cycle:
                 self.sync.start(sync.interval_ms / 1000.0)
+        self._axes = axes
+        self._axis = {a.name: a for a in axes}
+        self._by_node_id = {a.node_id: a for a in axes}
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="epos4_driver_cycle", daemon=True)
         self._thread.start()
 
     def _stop_cycle(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        thread = self._thread
+        if thread is not None:
+            thread.join(timeout=5.0)
+            if thread.is_alive():
+                log.error("driver cycle thread did not stop within 5 s")
             self._thread = None
+        self._cycle_ident = None
         if self.sync is not None:
-            self.sync.stop()
+            try:
+                self.sync.stop()
+            except Exception as e:
+                log.warning("stopping SYNC: %s", e)
             self.sync = None
         self._sync_in_cycle = False
+        with self._cond:
+            self._cond.notify_all()
 
     def _run(self) -> None:
-        period = self.config.sync.update_ms / 1000.0
+        self._cycle_ident = threading.get_ident()
+        period = self._period
         next_t = time.monotonic()
         while not self._stop.is_set():
             self.cycle()
@@ -227,183 +548,200 @@ class Driver:
                 self._stop.wait(delay)
 
     def cycle(self) -> None:
-        """One control cycle: readings in, callbacks, RPDOs and SYNC out.
-        Never raises: a failing cycle is logged and the next one runs."""
+        """One control cycle: inbox, readings, snapshot, callbacks, RPDOs and
+        SYNC. Never raises: a failing part is logged and the rest runs."""
+        self._cycle_no += 1
+        cycle_no = self._cycle_no
+        now = time.monotonic()
+        self._send_error = None
         try:
-            with self._lock:
-                now = time.time()
-                joints = self._joint_list
-                for j in joints:
-                    if not j.configuring:  # init/recover owns it meanwhile
-                        j.read()
-                        self._watch(j, now)
-                for fn in self._callbacks:
-                    try:
-                        fn(self)
-                    except Exception:
-                        log.exception("cycle callback %r failed", fn)
-                for j in joints:
-                    if not j.configuring:
-                        j.write(self._send)
-                if self._sync_in_cycle:
-                    self.sync.send()
-                self.cycles += 1
-            self._send_failures = 0
-        except (can.CanError, OSError) as e:
-            self._send_failures += 1
-            if self._send_failures == 10:
-                self.bus_error = str(e)
-                log.error("CAN bus error in 10 cycles in a row: %s", e)
-                for j in self.joints.values():
-                    j.set_error("bus error: %s" % e)
+            self._drain()
         except Exception:
-            log.exception("driver cycle failed")
+            log.exception("driver inbox failed")
+        receiver = self._receiver
+        snaps = {}
+        for axis in self._axes:
+            try:
+                if axis.attached:
+                    axis.read(receiver, now, cycle_no)
+                    axis.watch(now, cycle_no, self._period, self._pdo_timeout, _PDO_MISSING_CYCLES)
+            except Exception:
+                log.exception("%s: reading failed", axis.name)
+            snaps[axis.name] = axis.snapshot()
+        self._snapshot = DriverSnapshot(cycle_no, MappingProxyType(snaps), self.bus_error, self._foreign_frames[0])
+        for fn in self._callbacks:
+            try:
+                fn(self)
+            except Exception:
+                log.exception("cycle callback %r failed", fn)
+        send = self._send
+        for axis in self._axes:
+            try:
+                if axis.attached:
+                    axis.write(send)
+            except Exception:
+                log.exception("%s: writing failed", axis.name)
+        if self._sync_in_cycle and self.sync is not None:
+            try:
+                self.sync.send()
+            except (can.CanError, OSError) as e:
+                self._send_error = e
+        self._watch_bus()
         with self._cond:
             self._cond.notify_all()
 
-    def _watch(self, j: Joint, now: float) -> None:
-        """Heartbeat consumer, NMT state, boot-up and TxPDO watchdog, for
-        enabled joints. The TxPDO watchdog covers drives whose 0x1017 is 0
-        (no heartbeat): their statusword PDO comes every SYNC or event."""
-        if not j.ready or j.error:
+    def _watch_bus(self) -> None:
+        e = self._send_error
+        if e is None:
+            self._send_failures = 0
             return
-        if j.rebooted:
-            j.set_error("node rebooted (boot-up message received)")
-        elif j.heartbeat_ms > 0 and j.last_heartbeat and \
-                now - j.last_heartbeat > 1.5 * j.heartbeat_ms / 1000.0 + 2 * self._period:
-            j.nmt_state = "LOST"
-            j.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
-                        % ((now - j.last_heartbeat) * 1000, j.heartbeat_ms))
-        elif j.nmt_state in ("STOPPED", "PRE-OPERATIONAL"):
-            j.set_error("node left OPERATIONAL (heartbeat says %s)" % j.nmt_state)
-        else:
-            ts = j.status_pdo_time()
-            if ts != j.pdo_seen_ts:
-                j.pdo_seen_ts, j.pdo_seen_cycle, j.pdo_seen_time = ts, self.cycles, now
-            elif self.cycles - j.pdo_seen_cycle >= _PDO_MISSING_CYCLES and \
-                    now - j.pdo_seen_time > self._pdo_timeout:
-                # Counted in our own cycles too, so that a stall of this
-                # process (no SYNC sent) is not taken for a silent drive.
-                j.nmt_state = "LOST"
-                j.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
-                    self.cycles - j.pdo_seen_cycle, (now - j.pdo_seen_time) * 1000))
+        self._send_failures += 1
+        if self._send_failures == 10:
+            self.bus_error = str(e)
+            log.error("CAN bus error in 10 cycles in a row: %s", e)
+            for axis in self._axes:
+                axis.set_error("bus error: %s" % e)
 
-    def _wait(self, pred: Callable[[], bool], timeout: float) -> bool:
+    # ============================================================= waits
+    def _wait(self, pred: Callable[[DriverSnapshot], bool], timeout: float, after: int = -1) -> bool:
+        """Wait until a snapshot newer than cycle ``after`` satisfies pred."""
         deadline = time.monotonic() + timeout
+
+        def done() -> bool:
+            snap = self._snapshot
+            return snap.cycle > after and pred(snap)
         with self._cond:
-            while not pred():
+            while not done():
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or self._thread is None or self._abort.is_set():
-                    return pred()
-                self._cond.wait(remaining)
+                    return done()
+                self._cond.wait(min(remaining, 0.5))
         return True
 
     def _wait_cycles(self, n: int) -> None:
-        target = self.cycles + n
-        self._wait(lambda: self.cycles >= target, max(1.0, n * self.config.sync.update_ms / 100.0))
+        target = self._cycle_no + n
+        self._wait(lambda s: s.cycle >= target, max(1.0, n * self.config.sync.update_ms / 100.0))
 
-    def _go(self, joints: Sequence[Joint], state: State, fault_reset: bool = False,
-            timeout: Optional[float] = None) -> Optional[str]:
-        """Drive joints to a 402 state through the cycle; an error text or None."""
-        with self._lock:
-            for j in joints:
-                j.request_state(state, fault_reset)
-        reached = self._wait(lambda: all(j.state == state or j.error for j in joints),
-                             timeout or self.state_timeout)
-        for j in joints:
-            if j.error:
-                return "%s: %s" % (j.name, j.error)
-            if j.state != state:
-                return "%s did not reach %s (state %s, statusword 0x%04X%s)" % (
-                    j.name, state.value, j.state.value if j.state else "unknown", j.statusword,
-                    ", last EMCY " + j.last_emcy if j.last_emcy else "")
+    def _go(self, names: Sequence[str], state: State, fault_reset: bool = False,
+            timeout: Optional[float] = None, stop_on_error: bool = True) -> Optional[str]:
+        """Drive joints to a CiA 402 state through the cycle; an error text or None."""
+        names = tuple(names)
+        if not names:
+            return None
+        after = self._post(_StateRequest(names, state, fault_reset))
+
+        def there(a: AxisSnapshot) -> bool:
+            return a.held_state == state and a.target_state is None and a.state == state
+
+        def settled(s: DriverSnapshot) -> bool:
+            return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) for n in names)
+        reached = self._wait(settled, timeout or self.state_timeout, after)
+        snap = self._snapshot
+        problems = []
+        for n in names:
+            a = snap.axes[n]
+            if there(a):
+                continue
+            if a.error and stop_on_error:
+                return "%s: %s" % (n, a.error)
+            problems.append("%s did not reach %s (state %s, statusword 0x%04X%s)" % (
+                n, state.value, a.state.value if a.state else "unknown", a.statusword,
+                ", last EMCY " + a.last_emcy if a.last_emcy else ""))
+        if problems:
+            return "; ".join(problems)
         return None if reached else "timeout waiting for %s" % state.value
 
+    # =============================================================== SDO
+    def _upload(self, name: str, key: ObjectKey) -> Any:
+        var = find_variable(self._nodes[name].od, key)
+        with self._sdo_locks[name]:
+            return var.decode_raw(self._sdo[name].upload(key.index, key.subindex))
+
+    def _download(self, name: str, index: int, sub: int, data: bytes) -> None:
+        with self._sdo_locks[name]:
+            self._sdo[name].download(index, sub, data)
+
+    def _write_u32(self, name: str, index: int, sub: int, value: int) -> None:
+        self._download(name, index, sub, value.to_bytes(4, "little"))
+
+    def _write_u8(self, name: str, index: int, sub: int, value: int) -> None:
+        self._download(name, index, sub, bytes([value]))
+
+    def _position(self, name: str) -> int:
+        """0x6064 read over SDO: a position the driver can vouch for (an
+        answer to its own request), unlike a TPDO anyone could have sent."""
+        return int(self._upload(name, POSITION_ACTUAL))
+
     # ============================================================== init
-    def _configure(self, j: Joint) -> None:
+    def _configure(self, name: str) -> Binding:
         """NMT reset, then everything the plan says, over SDO (pre-operational)."""
-        with self._lock:
-            j.configuring = True  # the cycle leaves this joint alone meanwhile
-        try:
-            self._configure_node(j)
-        finally:
-            j.configuring = False
-
-    def _configure_node(self, j: Joint) -> None:
-        node = j.node
-        boot = self._boot[j.node_id]
+        node = self._nodes[name]
+        nid = node.cfg.node_id
+        boot = self._boot[nid]
         boot.clear()
-        node.nmt.send_command(NMT_RESET_NODE)
+        self._nmt(NMT_RESET_NODE, nid)
         if not boot.wait(self.boot_timeout):
-            raise _InitError("%s (node %d): no boot-up within %g s after NMT reset"
-                             % (j.name, j.node_id, self.boot_timeout))
-        j.rebooted = False
+            raise _InitError("%s (node %d): no boot-up within %g s after NMT reset" % (name, nid, self.boot_timeout))
         step = "configuration"
-        with j.sdo_lock:
-            try:
-                for w in j.plan.writes:
-                    step = "writing " + w.text
-                    node.sdo.download(w.key.index, w.key.subindex, w.data)
-                step = "writing the PDO mapping"
-                self._write_pdos(j)
-                j.bind(node)
-                step = "reading the initial values"
-                self._read_initial(j)
-            except SdoAbortedError as e:
-                raise _InitError("%s (node %d): %s failed: %s" % (j.name, j.node_id, step, e)) from None
-            except SdoCommunicationError as e:
-                raise _InitError("%s (node %d): no SDO answer during configuration: %s"
-                                 % (j.name, j.node_id, e)) from None
+        try:
+            for w in node.plan.writes:
+                step = "writing " + w.text
+                self._download(name, w.key.index, w.key.subindex, w.data)
+            step = "writing the PDO mapping"
+            self._write_pdos(name)
+            step = "reading the initial values"
+            return self._read_initial(name)
+        except SdoAbortedError as e:
+            raise _InitError("%s (node %d): %s failed: %s" % (name, nid, step, e)) from None
+        except SdoCommunicationError as e:
+            raise _InitError("%s (node %d): no SDO answer during configuration (%s): %s"
+                             % (name, nid, step, e)) from None
 
-    def _write_pdos(self, j: Joint) -> None:
-        for plans, maps in ((j.plan.rx, j.node.rpdo.map), (j.plan.tx, j.node.tpdo.map)):
-            for mp in plans:
-                m = maps[mp.number]
-                m.clear()
-                for key, bits in mp.entries:
-                    m.add_variable(key.index, key.subindex, bits)
-                m.cob_id = mp.cob_id
-                m.enabled = mp.enabled
-                m.trans_type = mp.trans_type
-                m.event_timer = mp.event_timer
-                m.inhibit_time = None
-                m.sync_start_value = None
-                m.rtr_allowed = mp.rtr_allowed
-                m.save()
+    def _write_pdos(self, name: str) -> None:
+        """The plan's PDO configuration, in CiA 301's order: invalidate, clear
+        the mapping, write it, count, transmission type, validate. (canopen's
+        Map.save does the same but also subscribes the map to its COB-ID,
+        which the driver must not do for RxPDOs.)"""
+        plan = self._nodes[name].plan
+        for maps, comm_base, map_base, rx in ((plan.rx, RPDO_COMM, RPDO_MAP, True),
+                                              (plan.tx, TPDO_COMM, TPDO_MAP, False)):
+            for mp in maps:
+                comm, mapping = comm_base + mp.number - 1, map_base + mp.number - 1
+                rtr = 0 if rx or mp.rtr_allowed else _RTR_NOT_ALLOWED
+                self._write_u32(name, comm, 1, mp.cob_id | _PDO_NOT_VALID | rtr)
+                self._write_u8(name, mapping, 0, 0)
+                for sub, (key, bits) in enumerate(mp.entries, start=1):
+                    self._write_u32(name, mapping, sub, key.index << 16 | key.subindex << 8 | bits)
+                self._write_u8(name, mapping, 0, len(mp.entries))
+                self._write_u8(name, comm, 2, mp.trans_type)
+                if mp.event_timer is not None:
+                    self._download(name, comm, 5, int(mp.event_timer).to_bytes(2, "little"))
+                if mp.enabled and mp.entries:
+                    self._write_u32(name, comm, 1, mp.cob_id | rtr)
 
-    def _upload(self, j: Joint, key: ObjectKey) -> Any:
-        var = find_variable(j.od, key)
-        return var.decode_raw(j.node.sdo.upload(key.index, key.subindex))
-
-    def _read_initial(self, j: Joint) -> None:
-        """Seed every PDO value from the drive, so the first RPDOs repeat what
-        the drive has (profile velocity...), targets hold the actual position
-        and readings are valid before the first TPDO."""
-        for node_map in (j.node.tpdo.map, j.node.rpdo.map):
-            for m in node_map.values():
-                if m.enabled:
-                    for var in m.map:
-                        var.raw = self._upload(j, ObjectKey(var.index, var.subindex))
-        j.raw_position = self._upload(j, POSITION_ACTUAL)
-        j.rx_var(ObjectKey(0x6040)).raw = 0
-        if j.active_mode is not None:
-            j.rx_var(ObjectKey(0x6060)).raw = j.active_mode
-        for expr in (j.cfg.pos_from_device, j.cfg.vel_from_device, j.cfg.eff_from_device,
-                     j.cfg.pos_to_device, j.cfg.vel_to_device, j.cfg.eff_to_device):
+    def _read_initial(self, name: str) -> Binding:
+        """Codecs and first values: every RPDO value from the drive, so the
+        first RPDOs repeat what the drive has (profile velocity...); the
+        objects conversions read that no TPDO carries; the position."""
+        node = self._nodes[name]
+        rx = tuple(RxPdo(node.od, m) for m in enabled_maps(node.plan.rx))
+        tx = tuple(TxPdo(node.od, m) for m in enabled_maps(node.plan.tx))
+        initial_out: Dict[ObjectKey, int] = {}
+        for rpdo in rx:
+            for key in rpdo.keys:
+                initial_out[key] = int(self._upload(name, key))
+        tx_keys = {k for t in tx for k in t.keys}
+        env: Dict[str, float] = {}
+        cfg = node.cfg
+        for expr in (cfg.pos_from_device, cfg.vel_from_device, cfg.eff_from_device,
+                     cfg.pos_to_device, cfg.vel_to_device, cfg.eff_to_device):
             for key in expr.objects:
-                if j.tx_var(key) is None:
-                    j.set_env(key, self._upload(j, key))
-        j.heartbeat_ms = self._upload(j, PRODUCER_HEARTBEAT) if PRODUCER_HEARTBEAT.index in j.od else 0
-        j.read()
-        j.reset_targets()
-        j.resend_all()
-
-    def _start_node(self, j: Joint) -> None:
-        j.node.nmt.send_command(NMT_START)
-        j.nmt_state = "OPERATIONAL"
-        j.last_heartbeat = j.pdo_seen_time = time.time()
-        j.pdo_seen_cycle = self.cycles
-        j.pdo_seen_ts = j.status_pdo_time()
+                if key not in tx_keys:
+                    env[object_variable_name(key)] = float(self._upload(name, key))
+        self._initial_env[name] = MappingProxyType(dict(env))
+        heartbeat_ms = int(self._upload(name, PRODUCER_HEARTBEAT)) if PRODUCER_HEARTBEAT.index in node.od else 0
+        return Binding(rx, tx, MappingProxyType(initial_out), MappingProxyType(env), self._position(name),
+                       heartbeat_ms, time.monotonic())
 
     def init(self) -> Result:
         """ros_canopen's init: reset, configure, start, home, enable."""
@@ -426,180 +764,199 @@ class Driver:
 
     def _init(self) -> Result:
         self.bus_error = None
+        self._send_failures = 0
         self._abort.clear()
         self._open()
-        joints = list(self.joints.values())
-        for j in joints:
-            j.error = None
-            j.halted = False
-            j.homing = False
-            j.last_emcy = ""
-            self._configure(j)
-        for j in joints:
-            self._start_node(j)
-        self._start_cycle()
+        names = list(self._nodes)
+        axes = []
+        methods = {}
+        for name in names:
+            node = self._nodes[name]
+            axis = Axis(node.cfg, node.od, node.plan, self._limits[name])
+            axis.active_mode = None
+            binding = self._configure(name)
+            try:
+                methods[name] = int(self._upload(name, HOMING_METHOD)) if HOMING_METHOD.index in node.od else 0
+            except (SdoAbortedError, SdoCommunicationError) as e:
+                raise _InitError("%s: reading the homing method 0x6098: %s" % (name, e)) from None
+            axis.attach(binding, 0, time.monotonic())
+            axes.append(axis)
+        for axis in axes:
+            self._nmt(NMT_START, axis.node_id)
+        now = time.monotonic()
+        for axis in axes:
+            axis.last_heartbeat = axis.status_seen = now
+        self._start_cycle(axes)
         self._wait_cycles(2)
-        err = self._go(joints, State.OPERATION_ENABLED, fault_reset=True)
+        err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
         if err:
             raise _InitError("enable failed: " + err)
-        wanted = {j.name: j.requested_mode if j.requested_mode is not None else j.active_mode for j in joints}
-        for j in joints:
-            j.ready = True
-        for j in joints:
-            with j.sdo_lock:
-                method = self._upload(j, HOMING_METHOD)
-            if method:
-                r = self._home(j, method)
+        self._wait(lambda s: True, 1.0, self._post(_Ready(tuple(names), True)))
+        for name in names:
+            if methods[name]:
+                r = self._home(name, methods[name])
                 if not r:
                     raise _InitError(r.message)
-        for j in joints:
-            mode = wanted[j.name]
+        for name in names:
+            mode = self._requested_modes[name]
             if mode is not None:
-                j.active_mode = None  # force the switch
-                r = self._switch(j, mode)
+                r = self._switch(name, mode, force=True)
                 if not r:
                     raise _InitError(r.message)
         self.initialized = True
-        names = ", ".join("%s (node %d, PDOs from %s)" % (j.name, j.node_id, j.plan.source) for j in joints)
-        return ok("initialized " + names)
+        text = ", ".join("%s (node %d, PDOs from %s)" % (n, self._nodes[n].cfg.node_id, self._nodes[n].plan.source)
+                         for n in names)
+        return ok("initialized " + text)
 
-    def _home(self, j: Joint, method: int) -> Result:
-        r = self._switch(j, HM)
+    def _home(self, name: str, method: int) -> Result:
+        r = self._switch(name, HOMING.number, force=True)
         if not r:
-            return fail("homing of %s: %s" % (j.name, r.message))
-        start = self.cycles
-        with self._lock:
-            j.homing = True
+            return fail("homing of %s: %s" % (name, r.message))
+        after = self._post(_Homing(name, True))
+        start = after + 3
         sw_done = cia402.SW_HOMING_ATTAINED | cia402.SW_TARGET_REACHED
 
-        def finished() -> bool:
-            if j.error or self.cycles < start + 3:
-                return bool(j.error)
-            return (j.statusword & sw_done) == sw_done or bool(j.statusword & cia402.SW_HOMING_ERROR)
-        done = self._wait(finished, self.homing_timeout)
-        with self._lock:
-            j.homing = False
-            j.reset_targets()
-        if j.error:
-            return fail("homing of %s (method %d): %s" % (j.name, method, j.error))
-        if j.statusword & cia402.SW_HOMING_ERROR:
+        def finished(s: DriverSnapshot) -> bool:
+            a = s.axes[name]
+            if a.error:
+                return True
+            if s.cycle < start:
+                return False
+            return (a.statusword & sw_done) == sw_done or bool(a.statusword & cia402.SW_HOMING_ERROR)
+        done = self._wait(finished, self.homing_timeout, after)
+        position = self._position(name)
+        self._wait(lambda s: True, 1.0, self._post(_Homing(name, False), _Hold(name, position)))
+        a = self._snapshot.axes[name]
+        if a.error:
+            return fail("homing of %s (method %d): %s" % (name, method, a.error))
+        if a.statusword & cia402.SW_HOMING_ERROR:
             return fail("homing of %s (method %d) failed: homing error bit set%s" % (
-                j.name, method, ", last EMCY " + j.last_emcy if j.last_emcy else ""))
+                name, method, ", last EMCY " + a.last_emcy if a.last_emcy else ""))
         if not done:
-            return fail("homing of %s (method %d) not finished within %g s" % (j.name, method, self.homing_timeout))
-        log.info("%s homed (method %d)", j.name, method)
+            return fail("homing of %s (method %d) not finished within %g s" % (name, method, self.homing_timeout))
+        log.info("%s homed (method %d)", name, method)
         return ok()
 
     # ====================================================== mode switch
-    def switch_mode(self, joint_names: Iterable[str], mode: int) -> Result:
+    def switch_mode(self, joint_names: Iterable[str], mode: Any) -> Result:
         """Put joints into a mode of operation through their switching_state;
-        targets are reset to the actual position first, so nothing jumps.
+        targets hold the position read over SDO first, so nothing jumps.
         Before init, the mode is remembered and applied by init."""
-        if isinstance(mode, bool) or not isinstance(mode, int) or mode not in SUPPORTED_DRIVE_MODES:
-            return fail("mode %r is not supported (supported: %s)" % (
-                mode, ", ".join("%d %s" % kv for kv in sorted(SUPPORTED_DRIVE_MODES.items()))))
-        joints = []
+        if isinstance(mode, bool) or not isinstance(mode, int) or mode_of(mode) is None:
+            return fail("mode %r is not supported (supported: %s)" % (mode, supported_modes_text()))
+        names = []
         for name in joint_names:
-            j = self.joint(name)
-            if j is None:
+            n = self._name(name)
+            if n is None:
                 return self._unknown(name)
-            joints.append(j)
+            names.append(n)
         if not self.initialized:
-            for j in joints:
-                j.requested_mode = mode
+            for n in names:
+                self._requested_modes[n] = mode
             return ok("mode %d will be set at init" % mode)
-        for j in joints:
-            j.requested_mode = mode
-            r = self._switch(j, mode)
+        for n in names:
+            self._requested_modes[n] = mode
+            r = self._switch(n, mode)
             if not r:
                 return r
         return ok()
 
-    def _switch(self, j: Joint, mode: int) -> Result:
-        if j.error:
-            return fail("%s is in error (%s): call recover" % (j.name, j.error))
-        if j.active_mode == mode and j.mode_display == mode and j.state == State.OPERATION_ENABLED:
-            with self._lock:
-                j.reset_targets()
+    def _switch(self, name: str, mode: int, force: bool = False) -> Result:
+        try:
+            return self._switch_steps(name, mode, force)
+        except (SdoAbortedError, SdoCommunicationError) as e:
+            return fail("mode switch of %s: %s" % (name, e))
+
+    def _switch_steps(self, name: str, mode: int, force: bool) -> Result:
+        a = self._snapshot.axes[name]
+        if a.error:
+            return fail("%s is in error (%s): call recover" % (name, a.error))
+        if not force and a.active_mode == mode and a.mode_display == mode and a.held_state == State.OPERATION_ENABLED:
+            self._wait(lambda s: True, 1.0, self._post(_Hold(name, self._position(name))))
             return ok()
-        with self._lock:
-            j.reset_targets()
-        err = self._go([j], j.switching_state)
+        self._post(_Hold(name, self._position(name)))
+        node = self._nodes[name]
+        err = self._go([name], SWITCHING_STATE[node.cfg.switching_state])
         if err:
-            return fail("mode switch of %s: %s" % (j.name, err))
-        with self._lock:
-            j.active_mode = mode
-        if not self._wait(lambda: j.mode_display == mode or bool(j.error), self.state_timeout) or j.error:
-            return fail("%s did not confirm mode %s (0x6061 = %d)" % (j.name, cia402.mode_name(mode), j.mode_display))
-        with self._lock:
-            j.reset_targets()
-        err = self._go([j], State.OPERATION_ENABLED)
+            return fail("mode switch of %s: %s" % (name, err))
+        self._post(_SetMode(name, mode, self._position(name)))
+        if MODES_OF_OPERATION not in node.plan.rx_keys():
+            self._download(name, MODES_OF_OPERATION.index, 0, mode.to_bytes(1, "little", signed=True))
+        if MODES_DISPLAY in node.plan.tx_keys():
+            confirmed = self._wait(lambda s: s.axes[name].mode_display == mode or bool(s.axes[name].error),
+                                   self.state_timeout)
+        else:
+            confirmed = int(self._upload(name, MODES_DISPLAY)) == mode
+        a = self._snapshot.axes[name]
+        if not confirmed or a.error:
+            return fail("%s did not confirm mode %s (0x6061 = %d)" % (name, cia402.mode_name(mode), a.mode_display))
+        self._post(_Hold(name, self._position(name)))
+        err = self._go([name], State.OPERATION_ENABLED)
         if err:
-            return fail("mode switch of %s: %s" % (j.name, err))
-        log.info("%s in mode %s", j.name, cia402.mode_name(mode))
+            return fail("mode switch of %s: %s" % (name, err))
+        log.info("%s in mode %s", name, cia402.mode_name(mode))
         return ok()
 
     # ================================================ halt/recover/shutdown
     def halt(self) -> Result:
-        """Stop motion, keep the drives powered (controlword halt bit; in
-        cyclic modes the targets also hold the actual position)."""
+        """Stop motion, keep the drives powered: the halt bit in the profile
+        modes, the last commanded target in CSP, zero in CSV/CST."""
         if not self.initialized:
             return fail("driver not initialized: call init")
-        with self._lock:
-            for j in self.joints.values():
-                j.halted = True
-                if j.mode_display in CYCLIC_MODES:
-                    j.reset_targets()
-        self._wait_cycles(2)
+        after = self._post(_StopInPlace(tuple(self._nodes)))
+        self._wait(lambda s: True, 1.0, after + 1)
         return ok("halted")
 
     def recover(self) -> Result:
-        """Fault reset and re-enable; targets are set to the actual position
-        before enabling so that nothing jumps to a stale target."""
+        """Fault reset and re-enable; targets hold the position read over SDO
+        before enabling, so that nothing jumps to a stale target."""
         if not self._service.acquire(blocking=False):
             return fail("another driver service is running")
         try:
             if not self.initialized:
                 return fail("driver not initialized: call init")
-            joints = list(self.joints.values())
-            # python-can's threaded periodic senders end on a send error
-            # (bus down): restart them, they are cheap to restart.
-            if self._heartbeat is not None:
-                self._heartbeat.stop()
-                self._heartbeat.start()
-            if self.sync is not None and not self._sync_in_cycle:
-                self.sync.start(self.config.sync.interval_ms / 1000.0)
-            for j in joints:
-                if j.rebooted or j.nmt_state in ("STOPPED", "PRE-OPERATIONAL", "INITIALISING", "LOST"):
-                    # A node that rebooted lost its configuration: redo it.
-                    try:
-                        self._configure(j)
-                    except _InitError as e:
-                        return fail("recover: %s" % e)
-                    self._start_node(j)
-            self._wait_cycles(2)
-            with self._lock:
-                for j in joints:
-                    j.error = None
-                    j.rebooted = False
-                    j.reset_targets()
-                    j.halted = False
-            err = self._go(joints, State.OPERATION_ENABLED, fault_reset=True)
-            if err:
-                return fail("recover: " + err)
-            self._wait_cycles(2)  # the cleared halt bit and held targets are out
-            for j in joints:
-                if j.active_mode is not None and j.mode_display != j.active_mode:
-                    mode, j.active_mode = j.active_mode, None
-                    r = self._switch(j, mode)
-                    if not r:
-                        return fail("recover: " + r.message)
-            return ok("recovered")
+            return self._recover()
+        except (SdoAbortedError, SdoCommunicationError) as e:
+            return fail("recover: %s" % e)
         except Exception as e:
             log.exception("recover failed")
             return fail("recover failed: %s" % e)
         finally:
             self._service.release()
+
+    def _recover(self) -> Result:
+        names = list(self._nodes)
+        # python-can's threaded periodic senders end on a send error (bus
+        # down): restart them, they are cheap to restart.
+        if self._heartbeat is not None:
+            self._heartbeat.stop()
+            self._heartbeat.start()
+        if self.sync is not None and not self._sync_in_cycle:
+            self.sync.start(self.config.sync.interval_ms / 1000.0)
+        self.bus_error = None
+        for name in names:
+            a = self._snapshot.axes[name]
+            if a.rebooted or a.nmt_state in ("STOPPED", "PRE-OPERATIONAL", "INITIALISING", "LOST"):
+                # A node that rebooted lost its configuration: redo it.
+                self._wait(lambda s: not s.axes[name].attached, 2.0, self._post(_Detach(name)))
+                try:
+                    binding = self._configure(name)
+                except _InitError as e:
+                    return fail("recover: %s" % e)
+                self._nmt(NMT_START, self._nodes[name].cfg.node_id)
+                self._post(_Attach(name, binding))
+        self._post(*[_ClearError(name, self._position(name)) for name in names])
+        err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
+        if err:
+            return fail("recover: " + err)
+        for name in names:
+            a = self._snapshot.axes[name]
+            if a.active_mode is not None and a.mode_display != a.active_mode:
+                r = self._switch(name, a.active_mode, force=True)
+                if not r:
+                    return fail("recover: " + r.message)
+        self._wait_cycles(2)
+        return ok("recovered")
 
     def shutdown(self) -> Result:
         """Quick stop and disable every drive, stop SYNC, NMT stop."""
@@ -612,94 +969,123 @@ class Driver:
             return ok("shut down")
 
     def _teardown(self) -> List[str]:
-        problems = []
-        joints = list(self.joints.values())
+        """Bring every drive the driver can reach to rest and disable it; a
+        drive that does not answer does not keep the others running."""
+        problems: List[str] = []
+        names = list(self._nodes)
         if self._thread is not None:
-            with self._lock:
-                for j in joints:
-                    j.halted = True
-                    j.reset_targets()
-            moving = [j for j in joints if j.state == State.OPERATION_ENABLED and not j.error]
-            if moving:  # quick stop ramps down before the power stage goes off
-                with self._lock:
-                    for j in moving:
-                        j.request_state(State.QUICK_STOP_ACTIVE)
-                self._wait(lambda: all(j.state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
-                                       for j in moving), self.state_timeout)
-            err = self._go([j for j in joints if j.state not in (State.FAULT, None)], State.SWITCH_ON_DISABLED)
+            snap = self._snapshot.axes
+            self._post(_StopInPlace(tuple(names)))
+            enabled = [n for n in names if snap[n].state == State.OPERATION_ENABLED and snap[n].attached]
+            err = self._go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False)
+            if err:
+                problems.append(err)
+            snap = self._snapshot.axes
+            live = [n for n in names if snap[n].attached and snap[n].state not in (State.FAULT, None)]
+            err = self._go(live, State.SWITCH_ON_DISABLED, stop_on_error=False)
             if err:
                 problems.append(err)
         self._stop_cycle()
+        # The cycle thread is gone: the axes are this thread's again.
+        for axis in self._axes:
+            axis.ready = False
+            if axis.active_mode is not None:
+                self._requested_modes[axis.name] = axis.active_mode
         if self.network is not None:
-            for j in joints:
+            for node in self._nodes.values():
                 try:
-                    j.node.nmt.send_command(NMT_STOP)
-                    j.nmt_state = "STOPPED"
+                    self._nmt(NMT_STOP, node.cfg.node_id)
                 except (can.CanError, OSError) as e:
-                    problems.append("NMT stop of %s: %s" % (j.name, e))
-        for j in joints:
-            j.ready = False
-            j.target_state = None
-            if j.active_mode is not None:
-                j.requested_mode = j.active_mode
+                    problems.append("NMT stop of %s: %s" % (node.cfg.name, e))
+                    continue
+                axis = self._axis.get(node.cfg.name)
+                if axis is not None:
+                    axis.nmt_state = "STOPPED"
+        if self._axes:
+            self._snapshot = DriverSnapshot(self._snapshot.cycle + 1, MappingProxyType(
+                {a.name: a.snapshot() for a in self._axes}), self.bus_error, self._foreign_frames[0])
         self._close()
         self.initialized = False
         return problems
 
     def close(self) -> None:
-        """Leave the drives safe and release the bus (node exit). A service
-        still waiting (init homing...) is made to give up first."""
-        self._abort.set()
-        if self._service.acquire(timeout=10.0):
-            self._service.release()
-        self._abort.clear()  # shutdown's own waits (quick stop) must run
-        if self.initialized or self.network is not None:
-            self.shutdown()
+        """Leave the drives safe and release the bus (node exit); never raises.
+        A service still waiting (init homing...) is made to give up first."""
+        try:
+            self._abort.set()
+            got = self._service.acquire(timeout=10.0)
+            if got:
+                self._service.release()
+            self._abort.clear()  # shutdown's own waits (quick stop) must run
+            if self.initialized or self.network is not None:
+                r = self.shutdown()
+                if not r:
+                    log.error("close: %s", r.message)
+        except Exception:
+            log.exception("close failed")
 
     # ========================================================== objects
-    def _object(self, node_name: str, obj: str) -> Tuple[Optional[Joint], Any, Optional[Result]]:
-        j = self.joint(node_name)
-        if j is None:
+    def _object(self, node_name: Any, obj: Any) -> Tuple[Optional[str], Any, Optional[Result]]:
+        n = self._name(node_name)
+        if n is None:
             return None, None, self._unknown(node_name)
         try:
             key = parse_object_key(obj)
-            var = find_variable(j.od, key)
+            var = find_variable(self._nodes[n].od, key)
         except ObjectStringError as e:
             return None, None, fail(str(e))
-        if self.network is None:
+        if n not in self._sdo:
             return None, None, fail("driver not initialized: call init")
-        return j, var, None
+        return n, var, None
 
     def get_object(self, node_name: str, obj: str, cached: bool = False) -> Result:
-        j, var, err = self._object(node_name, obj)
+        """ros_canopen's get_object; always answers."""
+        try:
+            return self._get_object(node_name, obj, cached)
+        except Exception as e:  # a bus going away mid-request, anything
+            return fail("reading %s from %s: %s" % (obj, node_name, e))
+
+    def _get_object(self, node_name: str, obj: str, cached: bool) -> Result:
+        n, var, err = self._object(node_name, obj)
         if err is not None:
             return err
         key = ObjectKey(var.index, var.subindex)
         if not is_readable(var):
             return fail("object %s is write-only" % key)
-        pdo_var = j.tx_var(key)
-        if cached and pdo_var is not None:
-            return ok(value=decode_value(var, pdo_var.raw))
-        if cached and key in j.cache:
-            return ok(value=decode_value(var, j.cache[key]))
+        readings = self._snapshot.axes[n].readings
+        if cached and key in readings:
+            return ok(value=decode_value(var, readings[key]))
+        cache = self._cache[n]
+        if cached and key in cache:
+            return ok(value=decode_value(var, cache[key]))
         try:
-            with j.sdo_lock:
-                value = self._upload(j, key)
+            value = self._upload(n, key)
         except SdoAbortedError as e:
-            return fail("reading %s from %s: %s" % (key, j.name, e))
+            return fail("reading %s from %s: %s" % (key, n, e))
         except SdoCommunicationError as e:
-            return fail("reading %s from %s: no answer (%s)" % (key, j.name, e))
-        j.cache[key] = value
+            return fail("reading %s from %s: no answer (%s)" % (key, n, e))
+        cache[key] = value
         return ok(value=decode_value(var, value))
 
     def set_object(self, node_name: str, obj: str, value: str, cached: bool = False) -> Result:
-        j, var, err = self._object(node_name, obj)
+        """ros_canopen's set_object; always answers. Objects the driver owns
+        are refused with the reason."""
+        try:
+            return self._set_object(node_name, obj, value, cached)
+        except Exception as e:
+            return fail("writing %s to %s: %s" % (obj, node_name, e))
+
+    def _set_object(self, node_name: str, obj: str, value: str, cached: bool) -> Result:
+        n, var, err = self._object(node_name, obj)
         if err is not None:
             return err
         key = ObjectKey(var.index, var.subindex)
         if key in DRIVER_OWNED:
             return fail("object %s is written by the driver every cycle: use the controllers "
                         "and services instead" % key)
+        for lo, hi, why in _REFUSED_RANGES:
+            if lo <= key.index <= hi:
+                return fail("object %s is refused: %s" % (key, why))
         if not is_writable(var):
             return fail("object %s is read-only" % key)
         try:
@@ -707,65 +1093,74 @@ class Driver:
             data = var.encode_raw(py_value)
         except ObjectValueError as e:
             return fail(str(e))
-        if cached and j.cache.get(key) == py_value:
+        cache = self._cache[n]
+        if cached and cache.get(key) == py_value:
             return ok("unchanged")
         try:
-            with j.sdo_lock, self._lock:
-                j.node.sdo.download(key.index, key.subindex, data)
-                rx = j.rx_var(key)
-                if rx is not None:  # keep the RPDO from writing the old value back
-                    rx.raw = py_value
+            self._download(n, key.index, key.subindex, data)
         except SdoAbortedError as e:
-            return fail("writing %s to %s: %s" % (key, j.name, e))
+            return fail("writing %s to %s: %s" % (key, n, e))
         except SdoCommunicationError as e:
-            return fail("writing %s to %s: no answer (%s)" % (key, j.name, e))
-        j.cache[key] = py_value
+            return fail("writing %s to %s: no answer (%s)" % (key, n, e))
+        cache[key] = py_value
+        if key in self._nodes[n].plan.rx_keys():
+            # keep the RPDO from writing the old value back
+            self._wait(lambda s: True, 1.0, self._post(_SetOutput(n, key, int(py_value))))
+        if key == PRODUCER_HEARTBEAT:
+            self._post(_SetHeartbeat(n, int(py_value)))
         return ok()
 
     # ==================================================== ROS layer/diag
     def published_types(self) -> Dict[str, int]:
         """topic -> CANopen data type of the ROS layer's published objects."""
         out = {}
-        for j in self.joints.values():
-            for pub in j.cfg.publish:
-                out[pub.topic] = find_variable(j.od, pub.key).data_type
+        for node in self._nodes.values():
+            for pub in node.cfg.publish:
+                out[pub.topic] = find_variable(node.od, pub.key).data_type
         return out
 
     def read_published(self) -> Dict[str, Any]:
         """topic -> value of every ``publish`` object: from its TPDO when
         mapped, else the cache, read by SDO when forced (``!``) or never read.
-        Objects that cannot be read are left out (and logged once)."""
+        Objects that cannot be read are left out (and logged)."""
         out: Dict[str, Any] = {}
-        if self.network is None:
+        if not self._sdo:
             return out
-        for j in self.joints.values():
-            for pub in j.cfg.publish:
-                pdo_var = j.tx_var(pub.key)
-                if pdo_var is not None and not pub.force:
-                    out[pub.topic] = pdo_var.raw
+        snap = self._snapshot.axes
+        for name, node in self._nodes.items():
+            readings = snap[name].readings
+            cache = self._cache[name]
+            for pub in node.cfg.publish:
+                if pub.key in readings and not pub.force:
+                    out[pub.topic] = readings[pub.key]
                     continue
-                if pub.force or pub.key not in j.cache:
+                if pub.force or pub.key not in cache:
                     try:
-                        with j.sdo_lock:
-                            j.cache[pub.key] = self._upload(j, pub.key)
-                    except (SdoAbortedError, SdoCommunicationError) as e:
+                        cache[pub.key] = self._upload(name, pub.key)
+                    except Exception as e:  # SDO abort, timeout, network closed meanwhile
                         log.warning("publish %s: %s", pub.topic, e)
                         continue
-                out[pub.topic] = j.cache[pub.key]
+                out[pub.topic] = cache[pub.key]
         return out
 
     def status(self) -> List[Dict[str, Any]]:
         """One dict per node for diagnostics."""
+        snap = self._snapshot
         out = []
-        for j in self.joints.values():
+        for a in snap.axes.values():
+            counters = {k: v for k, v in a.counters.items() if v}
             out.append({
-                "name": j.name, "node_id": j.node_id, "nmt_state": j.nmt_state,
-                "state": j.state.value if j.state else "unknown",
-                "statusword": "0x%04X" % j.statusword,
-                "mode": j.mode_name(), "mode_display": j.mode_display,
-                "last_emcy": j.last_emcy, "error_register": "0x%02X" % j.error_register,
-                "error": j.error or "", "halted": j.halted, "initialized": self.initialized,
-                "pdo_mapping": j.plan.source,
+                "name": a.name, "node_id": a.node_id, "nmt_state": a.nmt_state,
+                "state": a.state.value if a.state else "unknown",
+                "statusword": "0x%04X" % a.statusword,
+                "mode": a.mode_name(), "mode_display": a.mode_display,
+                "last_emcy": a.last_emcy, "error_register": "0x%02X" % a.error_register,
+                "error": a.error or "", "halted": a.halted, "initialized": self.initialized,
+                "pdo_mapping": a.plan.source, "limits": a.limits.describe(),
+                "last_refused_command": a.last_refusal,
+                "frames_ignored": ", ".join("%s %d" % kv for kv in sorted(counters.items())) or "none",
+                "foreign_rpdo_frames": snap.foreign_frames,
             })
         return out
+
 

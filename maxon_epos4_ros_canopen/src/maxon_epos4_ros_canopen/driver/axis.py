@@ -1,0 +1,631 @@
+"""One drive as the driver's cycle sees it: readings in, CiA 402 and mode
+work, the values it commands out.
+
+An Axis belongs to the thread that runs the cycle; nothing else reads or
+writes it (see the rule in driver/__init__.py). It learns what happens
+through messages (commands, state requests, heartbeats, EMCYs) and through
+the TPDO receiver's latest frames, and it shows itself to the rest of the
+program only as an immutable AxisSnapshot, made once per cycle.
+
+What it sends is built from its own fields only: the controlword it works
+out, the mode it was asked for and the targets it was commanded (or the
+position the service thread read over SDO when it asked to hold). No value
+of a received frame is ever copied into an outgoing one.
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+
+from .. import cia402
+from ..cia402 import State
+from ..config import SWITCHING_STATES, NodeConfig
+from ..limits import JointLimits, saturate
+from ..epos4_errors import describe as describe_error
+from ..objects import ObjectKey, find_variable
+from ..result import Result, fail, ok
+from ..units import Expression, object_variable_name
+from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL,
+                    PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
+                    TARGET_VELOCITY, Mode, mode_of)
+from .pdo import RxPdo, TpdoReceiver, TxPdo
+from .plan import NodePlan
+
+log = logging.getLogger("maxon_epos4_ros_canopen.driver")
+
+REFRESH_CYCLES = 50  # RxPDOs that did not change are sent again this often
+NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
+SWITCHING_STATE = {n: State(v) for n, v in SWITCHING_STATES.items()}
+
+# Controlword that keeps the drive in each state once it is there.
+_HOLD = {
+    State.SWITCH_ON_DISABLED: cia402.CW_DISABLE_VOLTAGE,
+    State.READY_TO_SWITCH_ON: cia402.CW_SHUTDOWN,
+    State.SWITCHED_ON: cia402.CW_SWITCH_ON,
+    State.OPERATION_ENABLED: cia402.CW_ENABLE_OPERATION,
+    State.QUICK_STOP_ACTIVE: cia402.CW_QUICK_STOP,
+}
+# Transitions the drive makes by itself that are no error: the end of a
+# quick stop ramp (option codes 1-4 end in Switch On Disabled).
+_AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
+
+
+class AxisSnapshot(NamedTuple):
+    """One axis as it stood at the end of a cycle's reading phase. Immutable."""
+    name: str
+    node_id: int
+    key: str
+    position: float
+    velocity: float
+    effort: float
+    raw_position: int
+    statusword: int
+    state: Optional[State]
+    mode_display: int
+    active_mode: Optional[int]
+    nmt_state: str
+    error: Optional[str]
+    halted: bool
+    homing: bool
+    ready: bool
+    attached: bool
+    target_state: Optional[State]
+    held_state: Optional[State]
+    last_emcy: str
+    error_register: int
+    heartbeat_ms: int
+    rebooted: bool
+    command_kind: Optional[str]
+    command_value: float
+    last_refusal: str
+    readings: Mapping[ObjectKey, Any]
+    counters: Mapping[str, int]
+    limits: JointLimits
+    plan: NodePlan
+
+    @property
+    def mode(self) -> int:
+        """The drive's mode of operation display (0x6061)."""
+        return self.mode_display
+
+    def mode_name(self) -> str:
+        return cia402.mode_name(self.mode_display)
+
+
+class Converter:
+    """Commands in ROS units to device values: immutable, one per axis.
+
+    The expressions were compiled once when the configuration was loaded;
+    the target objects' integer ranges come from the object dictionary.
+    """
+
+    _VARIABLE = {"position": "pos", "velocity": "vel", "effort": "eff"}
+
+    def __init__(self, cfg: NodeConfig, od: Any) -> None:
+        self.expressions: Dict[str, Expression] = {
+            "position": cfg.pos_to_device, "velocity": cfg.vel_to_device, "effort": cfg.eff_to_device}
+        self.ranges: Dict[str, Tuple[int, int, int]] = {}
+        for kind, key in TARGET_OF_KIND.items():
+            bits = len(find_variable(od, key))
+            self.ranges[kind] = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1, key.index)
+        self.dynamic = {k: bool(e.objects) for k, e in self.expressions.items()}
+
+    def convert(self, kind: str, value: float, env: Dict[str, float]) -> Tuple[Optional[int], Optional[str]]:
+        """Device value of a command, or why there is none. ``env`` holds the
+        objects the expression reads; its ``pos``/``vel``/``eff`` entry is
+        overwritten with ``value``."""
+        expr = self.expressions[kind]
+        env[self._VARIABLE[kind]] = value
+        raw = expr.evaluate(env)
+        if not math.isfinite(raw):
+            return None, "%s %g converts to %r by %r: refused" % (kind, value, raw, expr.text)
+        raw_int = int(round(raw))
+        lo, hi, index = self.ranges[kind]
+        if not lo <= raw_int <= hi:
+            return None, "%s %g converts to %d, outside 0x%04X's range %d..%d" % (kind, value, raw_int, index, lo, hi)
+        return raw_int, None
+
+
+def command_problem(axis: Any, kind: str, value: Any) -> Optional[str]:
+    """Why a command cannot be taken now (None: it can). ``axis`` is an Axis
+    or an AxisSnapshot: the same checks run in the caller's thread on the
+    latest snapshot and again in the cycle when the command is applied."""
+    if kind not in COMMAND_KINDS:
+        return "unknown command kind %r (position, velocity, effort)" % (kind,)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return "command must be a number"
+    try:
+        value = float(value)
+    except OverflowError:
+        return "%s command refused: not a finite number" % kind
+    if not math.isfinite(value):
+        return "%s command %r refused: not a finite number" % (kind, value)
+    if axis.error:
+        return "%s is in error (%s): call recover" % (axis.name, axis.error)
+    if not axis.ready:
+        return "%s is not initialized: call init" % axis.name
+    if axis.halted:
+        return "%s is halted: call recover before sending commands" % axis.name
+    if axis.state != State.OPERATION_ENABLED:
+        return "%s is not operation enabled (state %s)" % (axis.name, axis.state.value if axis.state else "unknown")
+    if axis.homing:
+        return "%s is homing" % axis.name
+    mode = mode_of(axis.active_mode)
+    if mode is None or mode.command_kind is None:
+        return "%s has no mode for commands yet (start a controller)" % axis.name
+    if mode.command_kind != kind:
+        return "%s is in mode %s, which takes %s commands, not %s" % (
+            axis.name, mode.name, mode.command_kind, kind)
+    return None
+
+
+@dataclass(frozen=True)
+class Binding:
+    """What configuring a node produced, handed to the axis in one piece:
+    its PDO codecs and the values its RxPDOs start with (read by SDO)."""
+    rx: Tuple[RxPdo, ...]
+    tx: Tuple[TxPdo, ...]
+    initial_out: Mapping[ObjectKey, int]
+    initial_env: Mapping[str, float]       # objects conversions read that no TPDO carries
+    raw_position: int                      # 0x6064 read by SDO
+    heartbeat_ms: int
+    configured_at: float                   # monotonic; older TPDO frames are stale
+
+
+class Axis:
+    """One drive's state; owned by the cycle thread."""
+
+    def __init__(self, cfg: NodeConfig, od: Any, plan: NodePlan, limits: JointLimits) -> None:
+        self.cfg = cfg
+        self.name = cfg.name
+        self.node_id = cfg.node_id
+        self.od = od
+        self.plan = plan
+        self.limits = limits
+        self.converter = Converter(cfg, od)
+        self.switching_state = SWITCHING_STATE[cfg.switching_state]
+        self._from_device = (cfg.pos_from_device, cfg.vel_from_device, cfg.eff_from_device)
+        # readings (ROS units) and what the drive reports
+        self.position = math.nan
+        self.velocity = math.nan
+        self.effort = math.nan
+        self.raw_position = 0
+        self.statusword = 0
+        self.state: Optional[State] = None
+        self.mode_display = 0
+        self.readings: Dict[ObjectKey, Any] = {}
+        self.env: Dict[str, float] = {"pos": math.nan, "vel": math.nan, "eff": math.nan}
+        # node status
+        self.nmt_state = "UNKNOWN"
+        self.last_emcy = ""
+        self.error_register = 0
+        self.error: Optional[str] = None
+        self.heartbeat_ms = 0
+        self.last_heartbeat = 0.0
+        self.status_seen = 0.0          # monotonic time of the last statusword TPDO
+        self.status_seen_cycle = 0
+        self.rebooted = False
+        # what the driver works towards
+        self.target_state: Optional[State] = None
+        self.held_state: Optional[State] = None  # the state last reached on request
+        self.fault_reset = False
+        self.active_mode: Optional[int] = None
+        self.halted = False
+        self.homing = False
+        self.ready = False
+        self.attached = False
+        self.command_kind: Optional[str] = None
+        self.command_value = math.nan
+        self.command_raw = 0
+        self.last_refusal = ""
+        self._ppm_pending: Optional[int] = None
+        self._ppm_stage = 0
+        self._last_cw = 0
+        self._tick = 0
+        self.counters: Dict[str, int] = {"bad_tpdo": 0, "undefined_statusword": 0, "undefined_nmt_state": 0,
+                                         "bad_heartbeat": 0, "bad_emcy": 0, "refused_commands": 0,
+                                         "clipped_commands": 0}
+        self._rx: Tuple[RxPdo, ...] = ()
+        self._tx: Tuple[TxPdo, ...] = ()
+        self._tx_last: List[Any] = []
+        self._rx_last: List[bytes] = []
+        self._status_pdo = -1
+        self._out: Dict[ObjectKey, int] = {}
+        self._env_keys: Tuple[Tuple[str, ObjectKey], ...] = ()
+        self._cyclic_rx: Dict[ObjectKey, int] = {}
+        self._cw_rx = -1
+        self._fresh_after = 0.0
+
+    # ---------------------------------------------------------- binding
+    def attach(self, binding: Binding, cycle: int, now: float) -> None:
+        """Take a configured node's codecs and initial values; the drive's
+        readings are unknown again until its TPDOs arrive."""
+        self._rx, self._tx = binding.rx, binding.tx
+        self._tx_last = [None] * len(self._tx)
+        self._fresh_after = binding.configured_at
+        self._rx_last = [b""] * len(self._rx)
+        self._out = dict(binding.initial_out)
+        self._out[CONTROLWORD] = 0
+        if MODES_OF_OPERATION in self._out and self.active_mode is not None:
+            self._out[MODES_OF_OPERATION] = self.active_mode
+        self._status_pdo = next(i for i, t in enumerate(self._tx) if STATUSWORD in t.keys)
+        self._cw_rx = next(i for i, r in enumerate(self._rx) if CONTROLWORD in r.keys)
+        self._cyclic_rx = {}
+        for i, r in enumerate(self._rx):
+            for key in r.keys:
+                if key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
+                    self._cyclic_rx[key] = i
+        names = []
+        for expr in self._from_device + tuple(self.converter.expressions.values()):
+            for key in expr.objects:
+                names.append((object_variable_name(key), key))
+        self._env_keys = tuple(dict(names).items())
+        self.env.update(binding.initial_env)
+        self.raw_position = binding.raw_position
+        self.readings = {}
+        self.state = None
+        self.statusword = 0
+        self.heartbeat_ms = binding.heartbeat_ms
+        self.last_heartbeat = self.status_seen = now
+        self.status_seen_cycle = cycle
+        self.nmt_state = "OPERATIONAL"
+        self.rebooted = False
+        self.target_state = None
+        self.held_state = None
+        self._last_cw = 0
+        self._ppm_pending = None
+        self._ppm_stage = 0
+        self.attached = True
+        self.hold(binding.raw_position)
+
+    def detach(self) -> None:
+        """Stop touching the node (it is being configured over SDO)."""
+        self.attached = False
+
+    # ------------------------------------------------------------- read
+    def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
+        """Take the TPDO frames that came since the last cycle."""
+        readings = self.readings
+        for i, tpdo in enumerate(self._tx):
+            frame = receiver.slots.get(tpdo.cob_id)
+            if frame is None or frame is self._tx_last[i]:
+                continue
+            self._tx_last[i] = frame
+            if frame[1] < self._fresh_after:
+                continue
+            values = tpdo.decode(frame[0])
+            if values is None:
+                self.counters["bad_tpdo"] += 1
+                continue
+            for key, value in zip(tpdo.keys, values):
+                readings[key] = value
+            if i == self._status_pdo:
+                self.status_seen = frame[1]
+                self.status_seen_cycle = cycle
+        sw = readings.get(STATUSWORD)
+        if sw is None:
+            return
+        if sw != self.statusword or self.state is None:
+            try:
+                state = cia402.state_from_statusword(sw)
+            except ValueError:
+                self.counters["undefined_statusword"] += 1
+                state = self.state
+            self.statusword = sw
+            self.state = state
+        self.mode_display = readings.get(MODES_DISPLAY, self.mode_display)
+        self.raw_position = readings.get(POSITION_ACTUAL, self.raw_position)
+        env = self.env
+        for name, key in self._env_keys:
+            value = readings.get(key)
+            if value is not None:
+                env[name] = value
+        env["pos"], env["vel"], env["eff"] = self.position, self.velocity, self.effort
+        pos, vel, eff = self._from_device
+        self.position = pos.evaluate(env)
+        self.velocity = vel.evaluate(env)
+        self.effort = eff.evaluate(env)
+        self._supervise()
+
+    def _supervise(self) -> None:
+        state, target = self.state, self.target_state
+        if state is None:
+            return
+        if target is not None:
+            if state == target:
+                self.target_state = None
+                self.held_state = state
+                if state != State.FAULT:
+                    self.fault_reset = False
+                return
+            if state == State.FAULT and not self.fault_reset:
+                self.set_error("drive is in fault%s" % self._emcy_suffix())
+            return
+        held = self.held_state
+        if held is None or state == held:
+            return
+        if (held, state) in _AUTOMATIC:
+            self.held_state = state
+            return
+        # The drive left the state on its own (fault, quick stop input, or a
+        # frame that lies): report it and stop with the drive's own means;
+        # never cut the power of a drive that may be moving.
+        what = "fault" if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else state.value
+        self.set_error("drive left %s, now %s%s" % (held.value, what, self._emcy_suffix() if what == "fault" else ""))
+
+    def _emcy_suffix(self) -> str:
+        return (": " + self.last_emcy) if self.last_emcy else ""
+
+    def set_error(self, text: str) -> None:
+        """The driver's reaction to anything wrong with this axis: report it
+        and stop in place (see stop_in_place)."""
+        if self.error is None:
+            log.error("%s (node %d): %s", self.name, self.node_id, text)
+            self.error = text
+        self.target_state = None
+        self.stop_in_place()
+
+    def stop_in_place(self) -> None:
+        """Stop without a value the driver cannot vouch for: the halt bit in
+        the profile modes and homing (the drive decelerates on its profile),
+        and in the cyclic modes the last target the driver itself sent (CSP)
+        or zero (CSV, CST). Power stays on."""
+        self.halted = True
+        self.command_kind = None
+        self.command_value = math.nan
+        self._ppm_pending = None
+        mode = mode_of(self.active_mode)
+        if mode is not None and mode.cyclic and mode.command_kind != "position":
+            self._out[TARGET_OF_KIND[mode.command_kind]] = 0
+
+    def hold(self, raw_position: int) -> None:
+        """Targets to 'stay where you are' at a position read by SDO: used
+        before enabling and when switching modes, so nothing jumps."""
+        self.command_kind = None
+        self.command_value = math.nan
+        out = self._out
+        for key, value in ((TARGET_POSITION, raw_position), (TARGET_VELOCITY, 0), (TARGET_TORQUE, 0)):
+            if key in out:
+                out[key] = value
+        self.command_raw = raw_position
+        self._ppm_pending = raw_position if self.active_mode == PROFILE_POSITION.number else None
+
+    # --------------------------------------------------------- watchdog
+    def watch(self, now: float, cycle: int, period: float, pdo_timeout: float, pdo_cycles: int) -> None:
+        """Heartbeat consumer, NMT state, boot-up and TxPDO watchdog for an
+        enabled axis (monotonic time)."""
+        if not self.ready or self.error or not self.attached:
+            return
+        if self.rebooted:
+            self.set_error("node rebooted (boot-up message received): its position reference and "
+                           "configuration are lost")
+        elif self.heartbeat_ms > 0 and now - self.last_heartbeat > 1.5 * self.heartbeat_ms / 1000.0 + 2 * period:
+            self.nmt_state = "LOST"
+            self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
+                           % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms))
+        elif self.nmt_state in ("STOPPED", "PRE-OPERATIONAL"):
+            self.set_error("node left OPERATIONAL (heartbeat says %s)" % self.nmt_state)
+        elif cycle - self.status_seen_cycle >= pdo_cycles and now - self.status_seen > pdo_timeout:
+            # Counted in cycles too, so that a stall of this process (no
+            # SYNC sent) is not taken for a silent drive.
+            self.nmt_state = "LOST"
+            self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
+                cycle - self.status_seen_cycle, (now - self.status_seen) * 1000))
+
+    def on_heartbeat(self, data: bytes, now: float) -> None:
+        if now < self._fresh_after:
+            return  # from before the node was (re)configured: the boot-up of its reset
+        if len(data) != 1:
+            self.counters["bad_heartbeat"] += 1
+            return
+        state = data[0] & 0x7F  # bit 7 is the toggle bit of node guarding
+        name = NMT_NAMES.get(state)
+        if name is None:
+            self.counters["undefined_nmt_state"] += 1
+            return
+        self.last_heartbeat = now
+        self.nmt_state = name
+        if state == 0 and self.ready:
+            self.rebooted = True
+
+    def on_emcy(self, data: bytes) -> None:
+        if len(data) < 3:
+            self.counters["bad_emcy"] += 1
+            return
+        code = data[0] | data[1] << 8
+        self.error_register = data[2]
+        if code == 0:
+            log.info("%s (node %d): EMCY error reset", self.name, self.node_id)
+            return
+        self.last_emcy = "%s (error register 0x%02X)" % (describe_error(code), data[2])
+        log.error("%s (node %d): EMCY %s", self.name, self.node_id, self.last_emcy)
+
+    # --------------------------------------------------------- requests
+    def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
+        self.target_state = state
+        self.fault_reset = fault_reset
+
+    def set_mode(self, number: int, raw_position: int) -> None:
+        self.active_mode = number
+        if MODES_OF_OPERATION in self._out:
+            self._out[MODES_OF_OPERATION] = number
+        self.hold(raw_position)
+
+    def set_output(self, key: ObjectKey, value: int) -> None:
+        """A value set_object wrote by SDO to an object an RxPDO carries: the
+        PDO carries the new value from now on."""
+        if key in self._out:
+            self._out[key] = value
+
+    def clear_error(self) -> None:
+        self.error = None
+        self.rebooted = False
+        self.halted = False
+        self.last_refusal = ""
+
+    # --------------------------------------------------------- commands
+    def apply_command(self, kind: str, value: float) -> Result:
+        """A command from a controller, checked again now that it is applied."""
+        problem = command_problem(self, kind, value)
+        if problem:
+            self.counters["refused_commands"] += 1
+            self.last_refusal = problem
+            return fail(problem)
+        value, clipped = saturate(self.limits, kind, float(value))
+        if clipped:
+            self.counters["clipped_commands"] += 1
+        raw, err = self.converter.convert(kind, value, self.env)
+        if err:
+            self.counters["refused_commands"] += 1
+            self.last_refusal = err
+            return fail(err)
+        self.command_kind = kind
+        self.command_value = value
+        self.command_raw = raw
+        if self.active_mode == PROFILE_POSITION.number:
+            self._ppm_pending = raw
+        return ok("clipped to the joint limits (%s)" % self.limits.describe() if clipped else "")
+
+    # ------------------------------------------------------------ write
+    def _controlword(self) -> int:
+        state = self.state
+        target = self.target_state
+        if state is None:
+            return self._last_cw & ~cia402.CW_FAULT_RESET_BIT
+        if target is not None and state != target:
+            if state == State.FAULT:
+                if not self.fault_reset:
+                    return self._hold_cw()
+                # Fault reset acts on the rising edge of bit 7.
+                return 0 if self._last_cw & cia402.CW_FAULT_RESET_BIT else cia402.CW_FAULT_RESET
+            cw = cia402.next_controlword(state, target)
+            if cw is None:
+                return self._last_cw & ~cia402.CW_FAULT_RESET_BIT
+            if cw == cia402.CW_ENABLE_OPERATION and self.halted:
+                cw |= cia402.CW_HALT
+            return cw
+        cw = self._hold_cw()
+        if self.held_state != State.OPERATION_ENABLED or self.halted:
+            return cw
+        mode = mode_of(self.active_mode)
+        if mode is None or self.mode_display != mode.number:
+            return cw
+        if mode is HOMING:
+            if self.homing:
+                cw |= cia402.CW_HOMING_START
+        elif mode is PROFILE_POSITION:
+            cw |= self._ppm_bits()
+        return cw
+
+    def _hold_cw(self) -> int:
+        held = self.held_state
+        cw = _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE) if held is not None else self._last_cw & ~cia402.CW_FAULT_RESET_BIT
+        if held == State.OPERATION_ENABLED and self.halted:
+            cw |= cia402.CW_HALT
+        return cw
+
+    def _ppm_bits(self) -> int:
+        """Profile position set-point handshake, change set immediately.
+
+        The target goes out one cycle before the new set-point edge: a drive
+        may apply the RPDO with the controlword before the one with 0x607A
+        at the same SYNC, and would then take the old target.
+        Stages: 0 idle, 3 target sent, 1 edge sent (wait for set-point
+        acknowledge, statusword bit 12), 2 edge cleared (wait for ack to drop).
+        """
+        ack = self.statusword & cia402.SW_SET_POINT_ACKNOWLEDGE
+        bits = cia402.CW_CHANGE_SET_IMMEDIATELY
+        stage = self._ppm_stage
+        if stage == 3:
+            self._ppm_stage = 1
+            return bits | cia402.CW_NEW_SET_POINT
+        if stage == 1:
+            if not ack:
+                return bits | cia402.CW_NEW_SET_POINT
+            self._ppm_stage = stage = 2
+        if stage == 2:
+            if ack:
+                return bits
+            self._ppm_stage = 0
+        if self._ppm_pending is not None:
+            self._out[TARGET_POSITION] = self._ppm_pending
+            self._ppm_pending = None
+            self._ppm_stage = 3
+        return bits
+
+    def write(self, send: Callable[[int, bytes], None]) -> None:
+        """Fill the RxPDOs from this axis's own fields and send those that
+        changed; the controlword PDO and the cyclic target's PDO go out
+        every cycle."""
+        out = self._out
+        mode = mode_of(self.active_mode)
+        cyclic_rx = -1
+        if mode is not None and mode.cyclic:
+            kind = mode.command_kind
+            if self.command_kind == kind and not self.halted:
+                if self.converter.dynamic[kind]:
+                    raw, err = self.converter.convert(kind, self.command_value, self.env)
+                    if err:
+                        # An object the conversion reads changed: stop where
+                        # we are rather than send garbage.
+                        self.set_error(err)
+                    else:
+                        self.command_raw = raw
+                if not self.halted:
+                    out[TARGET_OF_KIND[kind]] = self.command_raw
+            cyclic_rx = self._cyclic_rx.get(TARGET_OF_KIND[kind], -1)
+        elif mode is not None and mode.command_kind == "velocity" and self.command_kind == "velocity" \
+                and not self.halted:
+            out[TARGET_VELOCITY] = self.command_raw
+        cw = self._controlword()
+        out[CONTROLWORD] = cw
+        self._last_cw = cw
+        # The controlword PDO goes out every cycle, as with ros_canopen, so
+        # drive and master stay in step even if a frame was lost; the cyclic
+        # target's PDO too; the others when they change and every REFRESH
+        # cycles.
+        self._tick += 1
+        refresh = self._tick % REFRESH_CYCLES == 0
+        last = self._rx_last
+        for i, rpdo in enumerate(self._rx):
+            data = rpdo.encode(out)
+            if data != last[i] or i == self._cw_rx or i == cyclic_rx or refresh:
+                last[i] = data
+                send(rpdo.cob_id, data)
+
+    def resend_all(self) -> None:
+        self._rx_last = [b""] * len(self._rx)
+
+    # --------------------------------------------------------- snapshot
+    def snapshot(self) -> AxisSnapshot:
+        return AxisSnapshot(
+            self.name, self.node_id, self.cfg.key, self.position, self.velocity, self.effort, self.raw_position,
+            self.statusword, self.state, self.mode_display, self.active_mode, self.nmt_state, self.error,
+            self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
+            self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
+            self.command_value, self.last_refusal, MappingProxyType(dict(self.readings)),
+            MappingProxyType(dict(self.counters)), self.limits, self.plan)
+
+
+def initial_snapshot(cfg: NodeConfig, plan: NodePlan, limits: JointLimits) -> AxisSnapshot:
+    """What status shows for an axis before the first init."""
+    return AxisSnapshot(cfg.name, cfg.node_id, cfg.key, math.nan, math.nan, math.nan, 0, 0, None, 0, None,
+                        "UNKNOWN", None, False, False, False, False, None, None, "", 0, 0, False, None, math.nan,
+                        "", MappingProxyType({}), MappingProxyType({}), limits, plan)
+
+
+def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> Dict[str, float]:
+    """An environment for converting a command outside the cycle: the
+    objects of the latest snapshot (plus those read by SDO at init)."""
+    env: Dict[str, float] = dict(initial_env)
+    for key, value in snapshot.readings.items():
+        env[object_variable_name(key)] = value
+    env["pos"], env["vel"], env["eff"] = snapshot.position, snapshot.velocity, snapshot.effort
+    return env
+
+
+def snapshot_of(axes: Sequence[Axis]) -> Dict[str, AxisSnapshot]:
+    return {a.name: a.snapshot() for a in axes}

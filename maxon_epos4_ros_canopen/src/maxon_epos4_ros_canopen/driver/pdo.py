@@ -1,0 +1,95 @@
+"""The driver's PDO codec and TPDO receiver.
+
+canopen's PDO maps are not used at run time, for two reasons: a map
+subscribes to its own COB-ID, so a foreign frame on an RxPDO's COB-ID
+becomes the value the master sends next; and its receive path takes a lock
+and wakes every waiter for each frame. Here an RxPDO is encoded from the
+values the axis commands, nothing else, and a TxPDO is decoded only when
+its length matches its mapping.
+
+The receiver is the one place where a frame crosses from the CAN notifier
+thread to the cycle: each TPDO has a slot holding the latest (bytes,
+monotonic time) tuple. The notifier replaces the tuple; the cycle reads it.
+A tuple is immutable and the swap of one reference is atomic, so this is a
+latest-value message, not shared mutable state.
+"""
+from __future__ import annotations
+
+import struct
+import time
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from canopen.objectdictionary import ObjectDictionary
+
+from ..objects import ObjectKey, find_variable
+from .plan import MapPlan
+
+Frame = Tuple[bytes, float]  # payload, time.monotonic() of reception
+
+
+class PdoLayoutError(ValueError):
+    """A mapping the codec cannot encode (an entry not of whole bytes)."""
+
+
+def _layout(od: ObjectDictionary, entries: Sequence[Tuple[ObjectKey, int]]) -> Tuple[struct.Struct, Tuple[ObjectKey, ...]]:
+    fmt = "<"
+    keys = []
+    for key, bits in entries:
+        var = find_variable(od, key)
+        st = var.STRUCT_TYPES.get(var.data_type)
+        if st is None or st.size * 8 != bits:
+            raise PdoLayoutError("object %s (%d bits mapped) cannot be packed in a PDO by the driver" % (key, bits))
+        fmt += st.format.lstrip("<>=!@")
+        keys.append(key)
+    return struct.Struct(fmt), tuple(keys)
+
+
+class RxPdo:
+    """One PDO the driver sends: its COB-ID and the objects it carries."""
+
+    __slots__ = ("number", "cob_id", "keys", "_st")
+
+    def __init__(self, od: ObjectDictionary, plan: MapPlan) -> None:
+        self.number = plan.number
+        self.cob_id = plan.cob_id
+        self._st, self.keys = _layout(od, plan.entries)
+
+    def encode(self, values: Dict[ObjectKey, int]) -> bytes:
+        return self._st.pack(*[values[k] for k in self.keys])
+
+
+class TxPdo:
+    """One PDO the drive sends; decode() refuses a frame of the wrong length."""
+
+    __slots__ = ("number", "cob_id", "keys", "length", "_st")
+
+    def __init__(self, od: ObjectDictionary, plan: MapPlan) -> None:
+        self.number = plan.number
+        self.cob_id = plan.cob_id
+        self._st, self.keys = _layout(od, plan.entries)
+        self.length = self._st.size
+
+    def decode(self, data: bytes) -> Optional[Tuple[Any, ...]]:
+        if len(data) != self.length:
+            return None
+        return self._st.unpack(data)
+
+
+class TpdoReceiver:
+    """Latest frame of each TPDO COB-ID, filled by the CAN notifier thread."""
+
+    def __init__(self, cob_ids: Sequence[int]) -> None:
+        self.cob_ids = tuple(cob_ids)
+        self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
+        self._clock = time.monotonic
+
+    def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
+        """canopen.Network subscriber callback: never raises."""
+        self.slots[can_id] = (bytes(data), self._clock())
+
+    def latest(self, cob_id: int) -> Optional[Frame]:
+        return self.slots.get(cob_id)
+
+
+def enabled_maps(plans: Sequence[MapPlan]) -> List[MapPlan]:
+    return [p for p in plans if p.enabled and p.entries]

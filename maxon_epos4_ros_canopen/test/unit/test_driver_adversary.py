@@ -1,0 +1,242 @@
+"""The driver core tried as an adversary would, against the virtual EPOS4 on
+python-can's virtual bus: forged and corrupted frames, a second master,
+threads calling at the worst moment. What is checked is what the drive does
+(its object dictionary, read by the simulator's own client) and the frames
+on the bus."""
+import struct
+import threading
+import time
+
+import can
+import pytest
+
+from maxon_epos4_ros_canopen.cia402 import State
+from test_driver import DCF1, DCF2, J1, J2, Rig, ppm_ready, until
+
+
+@pytest.fixture
+def rig(request):
+    r = Rig("adv_" + request.node.name)
+    yield r
+    r.close()
+
+
+def forge(rig, cob_id, data):
+    rig.sniffer.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+
+
+def csp_ready(rig, **kw):
+    d = rig.start(**kw)
+    assert d.init().success
+    assert d.switch_mode([J1], 8).success
+    return d
+
+
+def test_forged_position_then_boot_up_does_not_move_the_drive(rig):
+    # following error window off: the drive would follow any target
+    d = csp_ready(rig, defaults={"dcf_overlay": {"6065": "4294967295"}})
+    start = rig.read(0x6064)
+    forge(rig, 0x381, struct.pack("<ii", 798396, 0))   # forged TxPDO3 (position actual)
+    forge(rig, 0x701, b"\x00")                         # then a boot-up
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "rebooted" in d.joints[J1].error
+    cycles = d.cycles
+    assert until(lambda: d.cycles > cycles + 30)
+    assert abs(rig.read(0x607A) - start) < 5
+    assert abs(rig.read(0x6064) - start) < 50
+    assert rig.state() == State.OPERATION_ENABLED      # powered, holding
+    r = d.recover()
+    assert r.success, r.message
+    assert abs(rig.read(0x6064) - start) < 50
+
+
+def test_forged_stopped_heartbeat_in_csp_holds_the_commanded_target(rig):
+    d = csp_ready(rig, defaults={"dcf_overlay": {"6065": "4294967295"}})
+    start = rig.read(0x6064)
+    assert d.set_command(J1, "position", start + 1000).success
+    assert until(lambda: abs(rig.read(0x6064) - (start + 1000)) < 20)
+    forge(rig, 0x381, struct.pack("<ii", 798396, 0))
+    forge(rig, 0x701, b"\x04")
+    assert until(lambda: d.joints[J1].error is not None)
+    time.sleep(0.3)
+    assert rig.read(0x607A) == start + 1000
+    assert abs(rig.read(0x6064) - (start + 1000)) < 50
+
+
+@pytest.mark.parametrize("payload", [struct.pack("<ii", 500000, 1000), b"\x01"])
+def test_foreign_frames_on_the_drivers_rxpdo_ids_are_ignored(rig, payload):
+    d = ppm_ready(rig)
+    start = rig.read(0x6064)
+    assert d.halt().success
+    cycles = d.cycles
+    for _ in range(20):
+        forge(rig, 0x301, payload)                      # the driver's own RxPDO 2
+    assert until(lambda: d.snapshot().foreign_frames >= 20)
+    assert until(lambda: d.cycles > cycles + 30)        # the cycle keeps running
+    assert rig.read(0x607A) != 500000
+    assert abs(rig.read(0x6064) - start) < 50
+    frames = rig.sent(0x301)
+    assert all(len(f) == 8 and struct.unpack("<i", f[:4])[0] != 500000 for f in frames[20:])
+    assert d.status()[0]["foreign_rpdo_frames"] >= 20
+    r = d.recover()
+    assert r.success, r.message
+    assert d.set_command(J1, "position", start + 10).success
+    assert until(lambda: rig.read(0x607A) == start + 10)
+    r = d.shutdown()
+    assert r.success, r.message
+    assert rig.state() == State.SWITCH_ON_DISABLED
+
+
+def test_one_forged_fault_statusword_does_not_cut_a_moving_drives_power(rig):
+    d = rig.start()
+    assert d.init().success and d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 900).success
+    assert until(lambda: abs(d.joints[J1].velocity - 900) < 10)
+    rig.drain()
+    forge(rig, 0x181, struct.pack("<Hb", 0x0208, 3))    # TxPDO1: statusword "fault"
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "fault" in d.joints[J1].error
+    time.sleep(0.2)
+    words = [struct.unpack_from("<H", f)[0] for f in rig.sent(0x201)]
+    assert words and all(w & 0x000F == 0x000F for w in words)   # never disabled
+    assert any(w & 0x0100 for w in words)                        # halted instead
+    assert rig.state() == State.OPERATION_ENABLED
+    assert until(lambda: abs(rig.read(0x606C)) < 5)              # stopped on its ramp, powered
+    assert rig.state() == State.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("state_byte", [0x78, 0x01, 0x06, 0xFF])
+def test_undefined_heartbeat_states_break_nothing(rig, state_byte):
+    d = ppm_ready(rig)
+    forge(rig, 0x701, bytes([state_byte]))
+    forge(rig, 0x701, b"")
+    forge(rig, 0x081, b"\x10")                          # a short EMCY
+    assert until(lambda: d.joints[J1].counters.get("bad_emcy") == 1)
+    assert d.joints[J1].error is None or state_byte == 0xFF
+    r = d.shutdown()
+    assert r.success, r.message
+    assert rig.state() == State.SWITCH_ON_DISABLED
+    assert d.init().success
+
+
+@pytest.mark.parametrize("obj, why", [("1400sub1", "PDO"), ("1A00", "PDO"), ("1A00sub1", "PDO"),
+                                      ("1010sub1", "store"), ("1600sub0", "PDO")])
+def test_set_object_refuses_the_objects_the_driver_owns(rig, obj, why):
+    d = ppm_ready(rig)
+    before = rig.read(0x1400, 1)
+    r = d.set_object(J1, obj, "2147484161")
+    assert not r.success and why in r.message, r.message
+    assert rig.read(0x1400, 1) == before
+    assert d.halt().success and d.recover().success
+
+
+def test_heartbeat_time_written_at_run_time_is_watched(rig):
+    d = ppm_ready(rig)
+    assert d.set_object(J1, "1017", "100").success
+    assert until(lambda: d.joints[J1].heartbeat_ms == 100)
+    rig.sim.inject_fault(1, "heartbeat_stop")
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "heartbeat lost" in d.joints[J1].error
+
+
+def test_services_racing_shutdown_always_answer(rig):
+    d = ppm_ready(rig)
+    answers, errors = [], []
+    stop = threading.Event()
+
+    def hammer():
+        while not stop.is_set():
+            try:
+                answers.append(d.get_object(J1, "6081"))
+                answers.append(d.set_object(J1, "6081", "1000"))
+                answers.append(d.set_command(J1, "position", 10 ** 400))
+            except Exception as exc:  # the bug: a call that raises
+                errors.append(exc)
+    threads = [threading.Thread(target=hammer) for _ in range(3)]
+    for t in threads:
+        t.start()
+    time.sleep(0.2)
+    r = d.shutdown()
+    time.sleep(0.2)
+    stop.set()
+    for t in threads:
+        t.join()
+    assert r.success, r.message
+    assert errors == []
+    assert all(hasattr(a, "success") for a in answers)
+    d.close()
+
+
+def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
+    d = ppm_ready(rig)
+    start = rig.read(0x6064)
+    in_cycle, go = threading.Event(), threading.Event()
+    armed = [False]
+    real_send = d.bus.send
+
+    def pausing_send(msg, timeout=None):
+        if armed[0] and msg.arbitration_id == 0x201:
+            armed[0] = False
+            in_cycle.set()
+            go.wait(5.0)
+        return real_send(msg, timeout)
+    d.bus.send = pausing_send
+    for value in (start + 1000, start + 2000, start + 3000):
+        in_cycle.clear()
+        go.clear()
+        armed[0] = True
+        assert in_cycle.wait(5.0)                  # the cycle is half way through
+        assert d.set_command(J1, "position", value - 500).success
+        assert d.set_command(J1, "position", value).success   # the last one wins
+        go.set()
+        assert until(lambda: rig.read(0x607A) == value), (value, rig.read(0x607A))
+        assert until(lambda: abs(rig.read(0x6064) - value) < 5)
+
+
+def test_eight_threads_for_15_seconds_lose_no_command(rig):
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+    assert d.init().success and d.switch_mode([J1, J2], 3).success
+    order_lock = threading.Lock()
+    last = {}
+    errors, unanswered = [], []
+    stop = threading.Event()
+    old_hook = threading.excepthook
+    threading.excepthook = lambda args: errors.append(args.exc_value)
+
+    def commander(joint, seed):
+        n = seed
+        while not stop.is_set():
+            n = (n * 7 + 13) % 400
+            value = n - 200
+            with order_lock:   # the order of posting is the order recorded
+                r = d.set_command(joint, "velocity", value)
+                if r.success:
+                    last[joint] = value
+            if not hasattr(r, "success"):
+                unanswered.append(r)
+
+    def caller(kind):
+        while not stop.is_set():
+            if kind == 0:
+                r = d.get_object(J1, "6081")
+            elif kind == 1:
+                r = d.set_object(J2, "6083", "10000")
+            else:
+                r = d.get_object(J2, "6041", True)
+            if not (hasattr(r, "success") and r.success):
+                unanswered.append(r)
+    threads = [threading.Thread(target=commander, args=(J1 if i % 2 else J2, i)) for i in range(5)]
+    threads += [threading.Thread(target=caller, args=(k,)) for k in range(3)]
+    try:
+        for t in threads:
+            t.start()
+        time.sleep(15.0)
+        stop.set()
+        for t in threads:
+            t.join(10.0)
+    finally:
+        threading.excepthook = old_hook
+    assert errors == [] and unanswered == []
+    assert until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
+        last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2))
+    assert d.joints[J1].error is None and d.joints[J2].error is None
