@@ -30,27 +30,26 @@ def buses():
     sniffer.shutdown()
 
 
-def test_periodic_sync_with_counter_falls_back_to_the_thread(buses):
+def periodic(buses, overflow, n):
+    """Start a 5 ms SYNC, take n of its frames, stop."""
     master, sniffer = buses
-    sync = SyncProducer(master, overflow=4)
+    sync = SyncProducer(master, overflow)
     sync.start(0.005)
     try:
-        frames = collect(sniffer, 10)
+        return sync, collect(sniffer, n)
     finally:
         sync.stop()
+
+
+def test_periodic_sync_with_counter_falls_back_to_the_thread(buses):
+    sync, frames = periodic(buses, 4, 10)
     assert not sync.kernel_timed  # the virtual bus has no kernel timer
     assert [bytes(f.data) for f in frames] == [bytes([c]) for c in (1, 2, 3, 4, 1, 2, 3, 4, 1, 2)]
     assert all(not f.is_extended_id and f.dlc == 1 for f in frames)
 
 
 def test_periodic_sync_without_counter_is_empty(buses):
-    master, sniffer = buses
-    sync = SyncProducer(master, overflow=0)
-    sync.start(0.005)
-    try:
-        frames = collect(sniffer, 3)
-    finally:
-        sync.stop()
+    sync, frames = periodic(buses, 0, 3)
     assert len(frames) == 3 and all(f.dlc == 0 for f in frames)
     assert sync.frames()[0].dlc == 0
 
