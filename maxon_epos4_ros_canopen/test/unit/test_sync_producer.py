@@ -96,3 +96,55 @@ def test_send_advances_the_counter(buses):
         sync.send()
     assert [bytes(f.data) for f in collect(sniffer, 3)] == [b"\x01", b"\x02", b"\x01"]
     assert sync.sent == 3
+
+
+class _Task:
+    def __init__(self):
+        self.stopped = False
+
+    def stop(self):
+        self.stopped = True
+
+
+def test_socketcan_hands_the_counter_sequence_to_the_kernel(buses, monkeypatch):
+    """On SocketCAN the frames go to send_periodic as one list without a
+    modifier callback (python-can makes that a BCM task); the virtual bus
+    stands in for the SocketCAN bus here and records the call."""
+    import maxon_epos4_ros_canopen.driver.bus as bus_module
+    master, sniffer = buses
+    calls = []
+    task = _Task()
+
+    def send_periodic(msgs, period, **kwargs):
+        calls.append((msgs, period, kwargs))
+        return task
+    monkeypatch.setattr(bus_module, "_is_socketcan", lambda bus: True)
+    monkeypatch.setattr(master, "send_periodic", send_periodic)
+    sync = SyncProducer(master, overflow=5)
+    before = time.monotonic()
+    sync.start(0.01)
+    assert sync.kernel_timed
+    (msgs, period, kwargs), = calls
+    assert period == 0.01 and "modifier_callback" not in kwargs
+    assert [(m.arbitration_id, bytes(m.data)) for m in msgs] == [(SYNC_COB_ID, bytes([c])) for c in range(1, 6)]
+    assert sync.first_at >= before + 0.01  # BCM's first frame comes one period after setup
+    sync.stop()
+    assert task.stopped and sync.first_at is None
+
+
+def test_socketcan_without_can_bcm_falls_back_to_the_thread(buses, monkeypatch):
+    import maxon_epos4_ros_canopen.driver.bus as bus_module
+    master, sniffer = buses
+
+    def no_bcm(msgs, period, **kwargs):
+        raise OSError(93, "Protocol not supported")
+    monkeypatch.setattr(bus_module, "_is_socketcan", lambda bus: True)
+    monkeypatch.setattr(master, "send_periodic", no_bcm)
+    sync = SyncProducer(master, overflow=2)
+    sync.start(0.005)
+    try:
+        frames = collect(sniffer, 3)
+    finally:
+        sync.stop()
+    assert not sync.kernel_timed
+    assert [bytes(f.data) for f in frames] == [b"\x01", b"\x02", b"\x01"]
