@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping, Optional, Sequence, Tuple, Union
+from typing import Callable, Mapping, Optional, Sequence, Tuple, Union
 
 from .config import DriverConfig, NodeConfig
 from .driver.plan import CONTROLWORD, MODE_TARGETS, PRODUCER_HEARTBEAT, RX_REQUIRED, MapPlan, NodePlan
@@ -254,7 +254,7 @@ def plan_config(config: DriverConfig) -> "Mapping[str, NodePlan]":
     return plans
 
 
-def main(argv: Optional[Sequence[str]] = None, resolver=None) -> int:
+def main(argv: Optional[Sequence[str]] = None, resolver: Optional[Callable[[str], str]] = None) -> int:
     """``bus_budget [--bitrate B] LAYER.yaml...``: the YAML layers the node
     loads, merged in order; prints the budget. Exit 0 when the load is at
     most 80 %, 1 above, 2 on a configuration error."""
