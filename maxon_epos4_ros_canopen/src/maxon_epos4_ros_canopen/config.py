@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import os
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
@@ -42,6 +42,7 @@ __all__ = [
     "SUPPORTED_DRIVE_MODES",
     "SWITCHING_STATES",
     "DEFAULT_UNITS",
+    "PDO_LAYOUTS",
 ]
 
 Resolver = Callable[[str], str]
@@ -71,11 +72,15 @@ DEFAULT_UNITS = {
 }
 _UNIT_KEYS = tuple(DEFAULT_UNITS)
 
+# Node layer ``pdo_layout``: the DCF's own PDO mapping (default) or the
+# driver's compact one (see driver/plan.py and docs/driver.md).
+PDO_LAYOUTS = ("dcf", "compact")
+
 _BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator"}
 _SYNC_KEYS = {"interval_ms", "update_ms", "overflow"}
 _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
-              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS)
+              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes"}
 _TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names"}
 _CONTROLLER_KEYS = {"type", "joint", "joints", "publish_rate", "required_drive_mode", "constraints"}
 _SOCKETCAN_PLUGIN = "can::SocketCANInterface"
@@ -141,6 +146,11 @@ class NodeConfig:
     publish: Tuple[PublishConfig, ...]
     motor_allocator: str = "canopen::Motor402::Allocator"
     extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+    # "dcf": the DCF's PDO mapping; "compact": the driver's own, only what
+    # ``modes`` need (driver/plan.py). modes: the node's ``modes`` key, else
+    # the required_drive_mode of the controllers naming this joint.
+    pdo_layout: str = "dcf"
+    modes: Tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -414,6 +424,45 @@ def _publish(r: _Reader, value: Any, key: str, name: str) -> Tuple[PublishConfig
     return tuple(out)
 
 
+def _modes(r: _Reader, value: Any, key: str) -> Tuple[int, ...]:
+    """``modes: [CSP, 3]``: CiA 402 modes by number or short name."""
+    if value is None:
+        return ()
+    if isinstance(value, (str, int)) and not isinstance(value, bool):
+        value = [value]
+    if not isinstance(value, (list, tuple)) or not value:
+        raise r.fail(key, "expected a list of modes like [CSP] or [1, 3], got %r" % (value,))
+    names = {v: k for k, v in SUPPORTED_DRIVE_MODES.items()}
+    out: List[int] = []
+    for i, m in enumerate(value):
+        if isinstance(m, str) and m.strip().upper() in names:
+            m = names[m.strip().upper()]
+        if isinstance(m, bool) or not isinstance(m, int) or m not in SUPPORTED_DRIVE_MODES:
+            raise r.fail("%s[%d]" % (key, i), "%r is not a supported mode; use one of %s" % (
+                m, ", ".join("%d (%s)" % kv for kv in sorted(SUPPORTED_DRIVE_MODES.items()))))
+        if m not in out:
+            out.append(m)
+    return tuple(out)
+
+
+def _controller_modes(nodes: Tuple[NodeConfig, ...], controllers: Sequence[ControllerConfig],
+                      r: _Reader) -> Tuple[NodeConfig, ...]:
+    """Give every node without a ``modes`` key the modes its controllers
+    require; a compact PDO layout cannot be planned without any."""
+    out = []
+    for n in nodes:
+        modes = n.modes
+        if not modes:
+            modes = tuple(sorted({c.required_drive_mode for c in controllers
+                                  if c.required_drive_mode is not None and n.name in c.joints}))
+            n = replace(n, modes=modes)
+        if n.pdo_layout == "compact" and not modes:
+            raise r.fail("nodes/%s/modes" % n.key, "pdo_layout compact maps only what the node's modes need: "
+                         "give modes (e.g. [CSP]) or a controller with required_drive_mode for joint %r" % n.name)
+        out.append(n)
+    return tuple(out)
+
+
 def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolver]) -> Tuple[NodeConfig, ...]:
     defaults = r.mapping(params.get("defaults"), "defaults")
     if "nodes" not in params or params["nodes"] in (None, {}, []):
@@ -457,6 +506,10 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
         overlay = _overlay(r, node.get("dcf_overlay"), prefix + "dcf_overlay")
         publish = _publish(r, node.get("publish"), prefix + "publish", name)
         allocator = r.string(node.get("motor_allocator", NodeConfig.motor_allocator), prefix + "motor_allocator")
+        pdo_layout = r.string(node.get("pdo_layout", PDO_LAYOUTS[0]), prefix + "pdo_layout")
+        if pdo_layout not in PDO_LAYOUTS:
+            raise r.fail(prefix + "pdo_layout", "%r is not a layout; use one of %s" % (pdo_layout, ", ".join(PDO_LAYOUTS)))
+        modes = _modes(r, node.get("modes"), prefix + "modes")
         extra = {k: v for k, v in node.items() if k not in _NODE_KEYS}
         if "motor_layer" in node:
             extra["motor_layer"] = node["motor_layer"]
@@ -465,7 +518,7 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
             key=prefix.split("/")[1] if prefix.startswith("nodes/") else name,
             node_id=node_id, name=name, eds_file=path, eds_pkg=pkg, dcf_overlay=overlay,
             switching_state=switching, publish=publish, motor_allocator=allocator,
-            extra=MappingProxyType(extra), **units))
+            extra=MappingProxyType(extra), pdo_layout=pdo_layout, modes=modes, **units))
     if not nodes:
         raise r.fail("nodes", "no node configured")
     seen_ids: Dict[int, str] = {}
@@ -548,6 +601,7 @@ def load_config(params: Mapping[str, Any], source: str, resolver: Optional[Resol
             if j not in node_names:
                 warnings.append("%s: joint_names: %r is not a node's name on this bus" % (source, j))
     controllers = _load_controllers(r, params, node_names)
+    nodes = _controller_modes(nodes, controllers, r)
     for k, v in params.items():
         if k in _TOP_KEYS:
             continue

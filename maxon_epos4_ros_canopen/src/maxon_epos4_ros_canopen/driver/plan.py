@@ -3,7 +3,10 @@
 * the configuration the DCF carries (its ParameterValues) as ready-to-send
   SDO payloads, with ``dcf_overlay`` on top;
 * the PDO mapping: the DCF's own when it already carries every object the
-  driver exchanges each cycle, otherwise one the driver lays out itself.
+  driver exchanges each cycle, otherwise one the driver lays out itself;
+  with the node layer's ``pdo_layout: compact``, the driver's smallest
+  layout for the node's modes (see ``compact_maps``): objects it leaves out
+  are moved by SDO (``NodePlan.sdo_rx()``/``sdo_tx()``).
 
 Everything is checked here, before any frame is sent, so a bad overlay value
 or an object missing from the dictionary stops the node at start.
@@ -37,6 +40,14 @@ PRODUCER_HEARTBEAT = ObjectKey(0x1017)
 RX_REQUIRED = (CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE)
 TX_REQUIRED = (STATUSWORD, MODES_DISPLAY, POSITION_ACTUAL, VELOCITY_ACTUAL)
 DRIVER_OWNED = frozenset(RX_REQUIRED)  # set_object refuses these: the cycle owns them
+
+# The target each mode of operation takes (HM needs only the controlword).
+MODE_TARGETS: Dict[int, Tuple[ObjectKey, ...]] = {
+    1: (TARGET_POSITION,), 3: (TARGET_VELOCITY,), 6: (),
+    8: (TARGET_POSITION,), 9: (TARGET_VELOCITY,), 10: (TARGET_TORQUE,),
+}
+CYCLIC_MODES = (8, 9, 10)  # their target goes out every SYNC
+PDO_BITS = 64
 
 RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
 PDO_COUNT = 4
@@ -72,16 +83,48 @@ class MapPlan:
 
 @dataclass(frozen=True)
 class NodePlan:
+    """What init writes; the PDO maps say exactly which objects travel by PDO.
+
+    source: "dcf" (the DCF's mapping), "driver" (the driver's own, because
+    the DCF lacked objects: every RX_REQUIRED/TX_REQUIRED object mapped) or
+    "compact" (``pdo_layout: compact``: only what ``modes`` need; the rest,
+    ``sdo_rx()``/``sdo_tx()``, is the core's to move by SDO).
+    modes: the modes the layout serves, () when it serves every mode.
+    """
     writes: Tuple[SdoWrite, ...]
     rx: Tuple[MapPlan, ...]
     tx: Tuple[MapPlan, ...]
-    source: str        # "dcf" or "driver": where the PDO mapping comes from
+    source: str
+    modes: Tuple[int, ...] = ()
 
     def rx_keys(self) -> List[ObjectKey]:
         return [k for m in self.rx if m.enabled for k, _ in m.entries]
 
     def tx_keys(self) -> List[ObjectKey]:
         return [k for m in self.tx if m.enabled for k, _ in m.entries]
+
+    def rx_mapped(self, key: ObjectKey) -> bool:
+        return key in self.rx_keys()
+
+    def tx_mapped(self, key: ObjectKey) -> bool:
+        return key in self.tx_keys()
+
+    def sdo_rx(self) -> List[ObjectKey]:
+        """Objects the core writes that no RxPDO carries: write them by SDO
+        when they change (0x6060 at a mode switch)."""
+        have = set(self.rx_keys())
+        return [k for k in RX_REQUIRED if k not in have]
+
+    def sdo_tx(self) -> List[ObjectKey]:
+        """Objects the core reads that no TxPDO carries: read them by SDO
+        when needed (0x6061 to confirm a mode switch)."""
+        have = set(self.tx_keys())
+        return [k for k in TX_REQUIRED if k not in have]
+
+    def supports(self, mode: int) -> bool:
+        """Whether the layout carries what ``mode`` needs every cycle."""
+        have = set(self.rx_keys())
+        return mode in MODE_TARGETS and CONTROLWORD in have and all(k in have for k in MODE_TARGETS[mode])
 
 
 def _variables(od: ObjectDictionary) -> Iterable[ODVariable]:
@@ -162,6 +205,58 @@ def _own_maps(od: ObjectDictionary, node_id: int, keys: Sequence[ObjectKey], rx:
     return out
 
 
+def _pack(od: ObjectDictionary, keys: Sequence[ObjectKey]) -> List[List[Tuple[ObjectKey, int]]]:
+    """Keys into as few 64-bit PDOs as fit: first fit in the given order
+    (keeps the statusword with the position, the controlword with the
+    cyclic target), first fit by decreasing size when that needs fewer."""
+    sized = [(k, len(find_variable(od, k))) for k in keys]
+
+    def first_fit(items: Sequence[Tuple[ObjectKey, int]]) -> List[List[Tuple[ObjectKey, int]]]:
+        bins: List[List[Tuple[ObjectKey, int]]] = []
+        for item in items:
+            for b in bins:
+                if sum(x for _, x in b) + item[1] <= PDO_BITS:
+                    b.append(item)
+                    break
+            else:
+                bins.append([item])
+        return bins
+
+    ordered = first_fit(sized)
+    decreasing = first_fit(sorted(sized, key=lambda kb: -kb[1]))
+    return decreasing if len(decreasing) < len(ordered) else ordered
+
+
+def compact_maps(od: ObjectDictionary, node_id: int, modes: Sequence[int],
+                 tx_objects: Sequence[ObjectKey]) -> Tuple[List[MapPlan], List[MapPlan]]:
+    """The compact layout: RxPDOs carry the controlword and the targets of
+    ``modes`` (cyclic modes' targets first, so the one sent every SYNC
+    shares a frame with the controlword); TxPDOs the statusword, the
+    position actual value and ``tx_objects`` (what the unit conversions
+    read). Modes of operation (0x6060/0x6061) are left to SDO: they change
+    only at a mode switch. Unused PDOs are disabled."""
+    rx_keys: List[ObjectKey] = [CONTROLWORD]
+    for cyclic_first in (True, False):
+        for mode in modes:
+            if (mode in CYCLIC_MODES) == cyclic_first:
+                for k in MODE_TARGETS[mode]:
+                    if k not in rx_keys:
+                        rx_keys.append(k)
+    tx_keys: List[ObjectKey] = [STATUSWORD, POSITION_ACTUAL]
+    for k in tx_objects:
+        if k not in tx_keys:
+            tx_keys.append(k)
+    out = []
+    for keys, rx in ((rx_keys, True), (tx_keys, False)):
+        bins = _pack(od, keys)
+        if len(bins) > PDO_COUNT:
+            raise ValueError("%d objects do not fit into %d %sPDOs" % (len(keys), PDO_COUNT, "R" if rx else "T"))
+        bases = _RX_COB_BASE if rx else _TX_COB_BASE
+        out.append([MapPlan(n + 1, bases[n] + node_id, n < len(bins), 1, None, not rx,
+                            tuple(bins[n]) if n < len(bins) else ()) for n in range(PDO_COUNT)])
+    return out[0], out[1]
+
+
 def _timing(maps: List[MapPlan], sync: SyncConfig, rx: bool) -> List[MapPlan]:
     """With SYNC, PDOs are synchronous (type 1); without it, event driven
     (255) and TPDOs sent every update period by the drive's event timer."""
@@ -215,6 +310,7 @@ def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: s
         writes[key] = SdoWrite(key, data, "%s = %s (dcf_overlay)" % (key, text))
 
     tx_needed: List[ObjectKey] = list(TX_REQUIRED)
+    conversions: List[ObjectKey] = []  # what the unit conversions read
     for name in ("pos_from_device", "vel_from_device", "eff_from_device",
                  "pos_to_device", "vel_to_device", "eff_to_device"):
         for key in getattr(cfg, name).objects:
@@ -226,11 +322,25 @@ def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: s
                 raise fail(name, "object %s cannot be mapped to a TPDO" % key)
             if var.pdo_mappable and key not in tx_needed:
                 tx_needed.append(key)
+            if var.pdo_mappable and key not in conversions:
+                conversions.append(key)
     for pub in cfg.publish:
         try:
             find_variable(od, pub.key)
         except ObjectStringError as e:
             raise fail("publish", "%s: %s" % (pub.spec, e)) from None
+
+    if cfg.pdo_layout == "compact":
+        unknown = [m for m in cfg.modes if m not in MODE_TARGETS]
+        if unknown or not cfg.modes:
+            raise fail("modes", "pdo_layout compact needs the node's modes (supported: %s), got %s"
+                       % (", ".join(str(m) for m in sorted(MODE_TARGETS)), list(cfg.modes)))
+        try:
+            rx, tx = compact_maps(od, cfg.node_id, cfg.modes, conversions)
+        except ValueError as e:
+            raise fail("pdo_layout", str(e)) from None
+        return NodePlan(tuple(writes.values()), tuple(_timing(rx, sync, True)), tuple(_timing(tx, sync, False)),
+                        "compact", tuple(cfg.modes))
 
     rx_dcf = dcf_maps(od, rx=True)
     tx_dcf = dcf_maps(od, rx=False)
