@@ -43,7 +43,7 @@ from collections import deque
 from typing import Dict, List, Optional, Tuple
 
 __all__ = [
-    "State", "OperationMode", "mode_name", "state_from_statusword",
+    "State", "OperationMode", "MODE_SHORT_NAMES", "mode_name", "state_from_statusword",
     "next_controlword", "apply_controlword", "statusword_state_bits",
     "COMMANDS",
 ]
@@ -67,6 +67,14 @@ class OperationMode(enum.IntEnum):
     CYCLIC_SYNC_POSITION = 8
     CYCLIC_SYNC_VELOCITY = 9
     CYCLIC_SYNC_TORQUE = 10
+
+
+# The short names ros_canopen users write (node layer ``modes``, docs).
+MODE_SHORT_NAMES = {
+    OperationMode.PROFILE_POSITION: "PPM", OperationMode.PROFILE_VELOCITY: "PVM", OperationMode.HOMING: "HM",
+    OperationMode.CYCLIC_SYNC_POSITION: "CSP", OperationMode.CYCLIC_SYNC_VELOCITY: "CSV",
+    OperationMode.CYCLIC_SYNC_TORQUE: "CST",
+}
 
 
 def mode_name(value: int) -> str:

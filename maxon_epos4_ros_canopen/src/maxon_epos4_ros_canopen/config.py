@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
+from .cia402 import MODE_SHORT_NAMES
 from .objects import ObjectKey, ObjectStringError, parse_object_key, parse_publish_spec
 from .units import Expression, UnitExpressionError, compile_expression
 
@@ -48,7 +49,7 @@ __all__ = [
 Resolver = Callable[[str], str]
 
 # CiA 402 modes of operation this driver can switch to.
-SUPPORTED_DRIVE_MODES = {1: "PPM", 3: "PVM", 6: "HM", 8: "CSP", 9: "CSV", 10: "CST"}
+SUPPORTED_DRIVE_MODES = {int(m): short for m, short in MODE_SHORT_NAMES.items()}
 
 # switching_state takes canopen_402's InternalState numbers. (The seed's
 # comment "2 # (Operation_Enable)" is wrong about the name: in canopen_402

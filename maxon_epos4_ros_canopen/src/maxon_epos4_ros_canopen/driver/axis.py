@@ -238,6 +238,7 @@ class Axis:
         self._cyclic_rx: Dict[ObjectKey, int] = {}
         self._cw_rx = -1
         self._fresh_after = 0.0
+        self._display_mapped = True
 
     # ---------------------------------------------------------- binding
     def attach(self, binding: Binding, cycle: int, now: float) -> None:
@@ -252,6 +253,9 @@ class Axis:
         if MODES_OF_OPERATION in self._out and self.active_mode is not None:
             self._out[MODES_OF_OPERATION] = self.active_mode
         self._status_pdo = next(i for i, t in enumerate(self._tx) if STATUSWORD in t.keys)
+        # A compact layout leaves modes of operation to SDO: the service that
+        # switches modes confirms 0x6061 by SDO and tells the axis.
+        self._display_mapped = any(MODES_DISPLAY in t.keys for t in self._tx)
         self._cw_rx = next(i for i, r in enumerate(self._rx) if CONTROLWORD in r.keys)
         self._cyclic_rx = {}
         for i, r in enumerate(self._rx):
@@ -447,6 +451,11 @@ class Axis:
     def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
         self.target_state = state
         self.fault_reset = fault_reset
+
+    def mode_confirmed(self, number: int) -> None:
+        """0x6061 read by SDO (modes display not mapped to a TPDO)."""
+        if not self._display_mapped:
+            self.mode_display = number
 
     def set_mode(self, number: int, raw_position: int) -> None:
         self.active_mode = number

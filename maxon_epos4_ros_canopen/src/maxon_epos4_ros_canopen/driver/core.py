@@ -36,6 +36,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import cia402
 from ..cia402 import State
+from ..bus_budget import check_budget
 from ..config import ConfigError, DriverConfig
 from ..limits import JointLimits, saturate
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_value, encode_value,
@@ -48,7 +49,7 @@ from .bus import HeartbeatProducer, SyncProducer, open_bus
 from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, mode_of,
                     supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
-from .plan import (DRIVER_OWNED, HOMING_METHOD, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
+from .plan import (DRIVER_OWNED, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
@@ -103,6 +104,12 @@ class _SetMode:
     axis: str
     mode: int
     raw_position: int
+
+
+@dataclass(frozen=True)
+class _ModeConfirmed:
+    axis: str
+    mode: int
 
 
 @dataclass(frozen=True)
@@ -243,7 +250,8 @@ class Driver:
         self._receiver: Optional[TpdoReceiver] = None
         self._boot: Dict[int, threading.Event] = {}
         self.sync: Optional[SyncProducer] = None
-        self._sync_in_cycle = False
+        self._sync_paced = False     # SYNC from the kernel, the cycle paced between SYNCs
+        self._sync_in_cycle = False  # SYNC sent by the cycle
         self._heartbeat: Optional[HeartbeatProducer] = None
         self._thread: Optional[threading.Thread] = None
         self._cycle_ident: Optional[int] = None
@@ -391,6 +399,8 @@ class Driver:
             self._axis[m.axis].hold(m.raw_position)
         elif kind is _SetMode:
             self._axis[m.axis].set_mode(m.mode, m.raw_position)
+        elif kind is _ModeConfirmed:
+            self._axis[m.axis].mode_confirmed(m.mode)
         elif kind is _Homing:
             self._axis[m.axis].homing = m.on
         elif kind is _Ready:
@@ -503,16 +513,30 @@ class Driver:
     def _start_cycle(self, axes: List[Axis]) -> None:
         sync = self.config.sync
         if sync.interval_ms > 0:
+            # Periodic SYNC, from the kernel's broadcast manager on SocketCAN:
+            # no scheduling delay of this process moves a SYNC. When SYNC and
+            # cycle share a period the cycle is paced between two SYNCs (see
+            # _run): its RxPDOs only have to land before the next one.
+            # Without a kernel timer (python-can's virtual bus, no can-bcm)
+            # the cycle sends SYNC itself, right after its RxPDOs: a second
+            # thread would only add its own scheduling jitter.
             self.sync = SyncProducer(self.bus, sync.overflow)
-            self._sync_in_cycle = sync.interval_ms == sync.update_ms
-            if not self._sync_in_cycle:
-                self.sync.start(sync.interval_ms / 1000.0)
+            self._start_sync()
         self._axes = axes
         self._axis = {a.name: a for a in axes}
         self._by_node_id = {a.node_id: a for a in axes}
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="epos4_driver_cycle", daemon=True)
         self._thread.start()
+
+    def _start_sync(self) -> None:
+        sync, producer = self.config.sync, self.sync
+        producer.start(sync.interval_ms / 1000.0)
+        same_period = sync.interval_ms == sync.update_ms
+        self._sync_paced = same_period and producer.kernel_timed
+        self._sync_in_cycle = same_period and not producer.kernel_timed
+        if self._sync_in_cycle:
+            producer.stop()
 
     def _stop_cycle(self) -> None:
         self._stop.set()
@@ -529,7 +553,7 @@ class Driver:
             except Exception as e:
                 log.warning("stopping SYNC: %s", e)
             self.sync = None
-        self._sync_in_cycle = False
+        self._sync_paced = self._sync_in_cycle = False
         with self._cond:
             self._cond.notify_all()
 
@@ -539,13 +563,21 @@ class Driver:
         next_t = time.monotonic()
         while not self._stop.is_set():
             self.cycle()
-            next_t += period
-            delay = next_t - time.monotonic()
-            if delay < 0:
-                self.overruns += 1
-                next_t = time.monotonic()
+            now = time.monotonic()
+            sync = self.sync
+            if self._sync_paced and sync is not None and sync.period:
+                # a quarter period after the next SYNC: the drives' TPDOs
+                # answering it are in, and the RxPDOs have time to land
+                due = sync.next_after(now) + 0.25 * sync.period
+                if due - next_t > 1.5 * period:
+                    self.overruns += int((due - next_t) / period - 0.5)
+                next_t = due
             else:
-                self._stop.wait(delay)
+                next_t += period
+                if next_t < now:
+                    self.overruns += 1
+                    next_t = now
+            self._stop.wait(max(0.0, next_t - time.monotonic()))
 
     def cycle(self) -> None:
         """One control cycle: inbox, readings, snapshot, callbacks, RPDOs and
@@ -766,6 +798,9 @@ class Driver:
         self.bus_error = None
         self._send_failures = 0
         self._abort.clear()
+        warning = check_budget(self.config, [node.plan for node in self._nodes.values()])
+        if warning:
+            log.warning("%s", warning)
         self._open()
         names = list(self._nodes)
         axes = []
@@ -849,6 +884,12 @@ class Driver:
             n = self._name(name)
             if n is None:
                 return self._unknown(name)
+            plan = self._nodes[n].plan
+            if not plan.supports(mode):
+                return fail("%s cannot run mode %d (%s): its %s PDO layout carries no %s (layout modes: %s)" % (
+                    n, mode, cia402.mode_name(mode), plan.source,
+                    ", ".join(str(k) for k in MODE_TARGETS[mode]) or "controlword",
+                    ", ".join(cia402.mode_name(m) for m in plan.modes) or "all"))
             names.append(n)
         if not self.initialized:
             for n in names:
@@ -887,6 +928,8 @@ class Driver:
                                    self.state_timeout)
         else:
             confirmed = int(self._upload(name, MODES_DISPLAY)) == mode
+            if confirmed:
+                self._post(_ModeConfirmed(name, mode))
         a = self._snapshot.axes[name]
         if not confirmed or a.error:
             return fail("%s did not confirm mode %s (0x6061 = %d)" % (name, cia402.mode_name(mode), a.mode_display))
@@ -931,8 +974,8 @@ class Driver:
         if self._heartbeat is not None:
             self._heartbeat.stop()
             self._heartbeat.start()
-        if self.sync is not None and not self._sync_in_cycle:
-            self.sync.start(self.config.sync.interval_ms / 1000.0)
+        if self.sync is not None:
+            self._start_sync()
         self.bus_error = None
         for name in names:
             a = self._snapshot.axes[name]

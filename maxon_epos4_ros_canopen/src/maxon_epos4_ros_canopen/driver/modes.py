@@ -16,8 +16,17 @@ from typing import Dict, Optional
 from .. import cia402
 from ..cia402 import OperationMode
 from ..objects import ObjectKey
-from .plan import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,  # noqa: F401
-                   TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, VELOCITY_ACTUAL)
+
+# The CiA 402 objects the driver exchanges every cycle.
+CONTROLWORD = ObjectKey(0x6040)
+MODES_OF_OPERATION = ObjectKey(0x6060)
+TARGET_POSITION = ObjectKey(0x607A)
+TARGET_VELOCITY = ObjectKey(0x60FF)
+TARGET_TORQUE = ObjectKey(0x6071)
+STATUSWORD = ObjectKey(0x6041)
+MODES_DISPLAY = ObjectKey(0x6061)
+POSITION_ACTUAL = ObjectKey(0x6064)
+VELOCITY_ACTUAL = ObjectKey(0x606C)
 
 COMMAND_KINDS = ("position", "velocity", "effort")
 TARGET_OF_KIND = {"position": TARGET_POSITION, "velocity": TARGET_VELOCITY, "effort": TARGET_TORQUE}

@@ -23,30 +23,22 @@ from canopen.objectdictionary import datatypes as dt
 from ..config import ConfigError, NodeConfig, SyncConfig
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, encode_value,
                        find_variable, is_writable)
+from .modes import (CONTROLWORD, MODES, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
+                    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, VELOCITY_ACTUAL)
 
-# Objects the driver writes in its RPDOs every cycle, and reads from TPDOs.
-CONTROLWORD = ObjectKey(0x6040)
-MODES_OF_OPERATION = ObjectKey(0x6060)
-TARGET_POSITION = ObjectKey(0x607A)
-TARGET_VELOCITY = ObjectKey(0x60FF)
-TARGET_TORQUE = ObjectKey(0x6071)
-STATUSWORD = ObjectKey(0x6041)
-MODES_DISPLAY = ObjectKey(0x6061)
-POSITION_ACTUAL = ObjectKey(0x6064)
-VELOCITY_ACTUAL = ObjectKey(0x606C)
+
 HOMING_METHOD = ObjectKey(0x6098)
 PRODUCER_HEARTBEAT = ObjectKey(0x1017)
 
+# Objects the driver writes in its RPDOs every cycle, and reads from TPDOs.
 RX_REQUIRED = (CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE)
 TX_REQUIRED = (STATUSWORD, MODES_DISPLAY, POSITION_ACTUAL, VELOCITY_ACTUAL)
 DRIVER_OWNED = frozenset(RX_REQUIRED)  # set_object refuses these: the cycle owns them
 
 # The target each mode of operation takes (HM needs only the controlword).
 MODE_TARGETS: Dict[int, Tuple[ObjectKey, ...]] = {
-    1: (TARGET_POSITION,), 3: (TARGET_VELOCITY,), 6: (),
-    8: (TARGET_POSITION,), 9: (TARGET_VELOCITY,), 10: (TARGET_TORQUE,),
-}
-CYCLIC_MODES = (8, 9, 10)  # their target goes out every SYNC
+    n: ((m.target,) if m.target is not None else ()) for n, m in MODES.items()}
+CYCLIC_MODES = tuple(n for n, m in MODES.items() if m.cyclic)  # their target goes out every SYNC
 PDO_BITS = 64
 
 RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP = 0x1400, 0x1600, 0x1800, 0x1A00
