@@ -36,6 +36,8 @@ if ! { ip link add dev vcan0 type vcan && ip link set vcan0 up; } >>"$rundir/ini
   echo novcan > "$rundir/status"
   poweroff -f
 fi
+# A second bus for tests that run a stack on a device other than vcan0.
+{ ip link add dev vcan1 type vcan && ip link set vcan1 up; } >>"$rundir/init.log" 2>&1
 
 cd "$(cat "$rundir/cwd")" || cd /
 # The caller's environment (bash `export -p` form), minus what differs here.

@@ -250,7 +250,7 @@ class RoverSim:
         for node, limit in zip(p.DRIVE_NODES, limits[1:]):
             drive = self.drives[node]
             moving = self.motor_power and (drive.steer_mode or drive.drive_mode)
-            load = (abs(drive.velocity) / self.config.max_velocity_pulses * 0.4 * limit
+            load = (abs(drive.velocity) / self.config.max_velocity_pulses * 0.25 * limit
                     if self.motor_power else 0.0)
             wheels.append((0.03 * limit if moving else 0.0) + load)
         values = [0.05 * limits[0] + sum(wheels)] + wheels

@@ -221,5 +221,6 @@ def test_the_candump_example_of_the_specification_decodes_as_described():
     assert [len(bytes.fromhex(data)) for _, _, data in lines] == [int(n) for _, n, _ in lines]
     assert messages == [
         p.PowerCmd(True), p.PowerFb(True), p.SwitchCmd(1, True, True, True, False),
-        p.OrientationCmd(1, 1000), p.VelocityCmd(1, 500), p.LocomotionFb(1, True),
-        p.OdometryFb(1, 1000, 500, 300, 5), p.ErrorWrn(front_left=True)]
+        p.OrientationCmd(1, 2096), p.VelocityCmd(1, 3902), p.LocomotionFb(1, True),
+        p.OdometryFb(1, 2096, 3902, 300, 5), p.ErrorWrn(front_left=True),
+        p.CurrentFb(0, 16384)]
