@@ -1,7 +1,7 @@
 #!/bin/sh
 # PID 1 inside user-mode Linux (see tools/vcan_run.sh): mount what Linux
 # needs, load the CAN modules that Debian ships for the UML kernel, bring up
-# lo and vcan0, run the command, write its exit status to the run folder on
+# lo, vcan0 and vcan1, run the command, write its exit status to the run folder on
 # the host file system, and power off.
 PATH=/usr/sbin:/usr/bin:/sbin:/bin
 export PATH

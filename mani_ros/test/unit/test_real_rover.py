@@ -174,3 +174,22 @@ def test_the_original_move_control_is_a_rigid_body_motion():
     assert (vx, vy, wz) == pytest.approx((0.05, 0.04, 0.2))
     for c in command.wheels.values():
         assert -math.pi / 2 - 1e-9 <= c.angle <= math.pi / 2 + 1e-9
+
+
+@pytest.mark.parametrize("length, data", [(2, "3e0f"), (4, "3e0f0000")])
+def test_a_nodes_can_link_sends_the_configured_command_data_length(length, data):
+    channel = "mani_real_length_%d_%d" % (length, next(_channels))
+    peer = can.Bus(interface="virtual", channel=channel)
+    link = CanLink(channel, "virtual", command_data_length=length)
+    try:
+        link.send(p.VelocityCmd(p.REAR_RIGHT, 3902))
+        frame = peer.recv(timeout=1.0)
+        assert (frame.arbitration_id, frame.dlc, bytes(frame.data).hex()) == (0x0C3, length, data)
+    finally:
+        link.shutdown()
+        peer.shutdown()
+
+
+def test_a_can_link_refuses_another_command_data_length():
+    with pytest.raises(ValueError, match="command data length must be 2 or 4, got 3"):
+        CanLink("unused", "virtual", command_data_length=3)
