@@ -35,6 +35,9 @@ elif [ "$transport" = native ] && ! native_vcan_ready; then
 fi
 
 if [ "$transport" = native ]; then
+  # A second bus for tests on a device other than vcan0 (best effort).
+  { ip link show vcan1 || ip link add dev vcan1 type vcan; } >/dev/null 2>&1
+  ip link set vcan1 up >/dev/null 2>&1 || true
   echo "vcan0: native"
   "$@"
   exit $?

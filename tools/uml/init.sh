@@ -1,7 +1,7 @@
 #!/bin/sh
 # PID 1 inside user-mode Linux (see tools/vcan_run.sh): mount what Linux
 # needs, load the CAN modules that Debian ships for the UML kernel, bring up
-# lo and vcan0, run the command, write its exit status to the run folder on
+# lo, vcan0 and vcan1, run the command, write its exit status to the run folder on
 # the host file system, and power off.
 PATH=/usr/sbin:/usr/bin:/sbin:/bin
 export PATH
@@ -36,6 +36,8 @@ if ! { ip link add dev vcan0 type vcan && ip link set vcan0 up; } >>"$rundir/ini
   echo novcan > "$rundir/status"
   poweroff -f
 fi
+# A second bus for tests that run a stack on a device other than vcan0.
+{ ip link add dev vcan1 type vcan && ip link set vcan1 up; } >>"$rundir/init.log" 2>&1
 
 cd "$(cat "$rundir/cwd")" || cd /
 # The caller's environment (bash `export -p` form), minus what differs here.

@@ -27,8 +27,10 @@ class CanLink:
     def __init__(self, channel: str, interface: str = "socketcan",
                  on_message: Optional[MessageHandler] = None,
                  on_problem: Optional[ProblemHandler] = None,
-                 bus: Optional[can.BusABC] = None) -> None:
+                 bus: Optional[can.BusABC] = None,
+                 command_data_length: int = 2) -> None:
         self.channel = channel
+        self.command_data_length = protocol.check_command_data_length(command_data_length)
         self.interface = interface
         if bus is None:
             try:
@@ -90,7 +92,7 @@ class CanLink:
 
     def send(self, message: protocol.Message, timeout: float = 0.1) -> None:
         """Send one message; raises can.CanError when the bus refuses it."""
-        frame = protocol.to_can_message(message)
+        frame = protocol.to_can_message(message, self.command_data_length)
         with self._lock:  # one writer at a time: python-can buses are not thread-safe
             self.bus.send(frame, timeout=timeout)
 

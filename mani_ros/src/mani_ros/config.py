@@ -12,7 +12,7 @@ from typing import Any, Dict, Mapping, Optional, Tuple, Type, TypeVar, get_type_
 
 import yaml
 
-from .protocol import DRIVE_NODES, INT16_MAX, NODE_NAMES
+from .protocol import COMMAND_DATA_LENGTHS, DRIVE_NODES, EPS_SENSORS, INT16_MAX, NODE_NAMES
 
 WHEELS: Tuple[str, ...] = tuple(NODE_NAMES[node] for node in DRIVE_NODES)
 
@@ -41,6 +41,7 @@ class Can:
     device: str
     sim_device: str
     bitrate: int
+    command_data_length: int
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,7 @@ class Timeouts:
 @dataclass(frozen=True)
 class Power:
     overcurrent_switch_off: bool
+    max_current: Dict[str, float]   # [A] per EPS sensor: currentFb's full scale
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,6 @@ class Simulation:
     velocity_tolerance: int
     odometry_period: float
     eps_period: float
-    current_max: int
     motor_power_on: bool
 
 
@@ -88,7 +89,7 @@ class ManiConfig:
     steering: Steering
     DRIVE_ENC_PPR: int
     STEER_ENC_PPR: int
-    MAX_VEL: int
+    MAX_VEL: float   # [rad/s] fastest wheel rotation
     can: Can
     frames: Frames
     timeouts: Timeouts
@@ -105,7 +106,12 @@ class ManiConfig:
     @property
     def max_wheel_speed(self) -> float:
         """MAX_VEL as wheel rim speed [m/s]."""
-        return self.MAX_VEL / self.DRIVE_ENC_PPR * self.wheel_circumference
+        return self.MAX_VEL * self.rover.wheel_radius
+
+    @property
+    def max_velocity_pulses(self) -> int:
+        """MAX_VEL in drive encoder pulses/s, the largest velocityCmd."""
+        return int(self.MAX_VEL / (2.0 * math.pi) * self.DRIVE_ENC_PPR)
 
     def wheel_positions(self) -> Dict[str, Tuple[float, float]]:
         """(x, y) of each wheel's steering axis in base_link [m]; x forward,
@@ -160,17 +166,19 @@ def _section(kind: Type[T], data: Any, path: str, source: str) -> T:
         if isinstance(hint, type) and hint not in (float, int, bool, str):
             values[name] = _section(hint, data[name], prefix + name, source)
         elif name == "offsets":
-            values[name] = _offsets(data[name], prefix + name, source)
+            values[name] = _per_name(data[name], WHEELS, "one angle [rad]", prefix + name, source)
+        elif name == "max_current":
+            values[name] = _per_name(data[name], EPS_SENSORS, "one current [A]", prefix + name, source)
         else:
             values[name] = _value(hint, data[name], prefix + name, source)
     return kind(**values)
 
 
-def _offsets(data: Any, path: str, source: str) -> Dict[str, float]:
-    if not isinstance(data, Mapping) or set(data) != set(WHEELS):
-        raise ConfigError("%s must give one angle [rad] for each of %s, got %r"
-                          % (_where(path, source), ", ".join(WHEELS), data))
-    return {wheel: _value(float, data[wheel], path + "." + wheel, source) for wheel in WHEELS}
+def _per_name(data: Any, names: Tuple[str, ...], what: str, path: str, source: str) -> Dict[str, float]:
+    if not isinstance(data, Mapping) or set(data) != set(names):
+        raise ConfigError("%s must give %s for each of %s, got %r"
+                          % (_where(path, source), what, ", ".join(names), data))
+    return {name: _value(float, data[name], path + "." + name, source) for name in names}
 
 
 def _require(ok: bool, path: str, source: str, rule: str) -> None:
@@ -193,15 +201,21 @@ def config_from_dict(data: Any, source: str = "<dict>") -> ManiConfig:
         _require(abs(offset) <= math.pi, "steering.offsets." + wheel, source, "must be within [-pi, pi]")
     for name in ("DRIVE_ENC_PPR", "STEER_ENC_PPR"):
         _require(0 < getattr(config, name) <= INT16_MAX, name, source, "must be in 1..32767")
-    _require(0 < config.MAX_VEL <= INT16_MAX, "MAX_VEL", source,
-             "must be in 1..32767 (drive encoder pulses/s, an int16 on the bus)")
+    _require(config.MAX_VEL > 0, "MAX_VEL", source, "must be > 0 (rad/s)")
+    _require(config.max_velocity_pulses <= INT16_MAX, "MAX_VEL", source,
+             "is %d drive encoder pulses/s, beyond an int16 on the bus"
+             % config.max_velocity_pulses)
     _require(0 < config.can.bitrate <= 1000000, "can.bitrate", source, "must be in 1..1000000")
+    _require(config.can.command_data_length in COMMAND_DATA_LENGTHS, "can.command_data_length",
+             source, "must be 2 (the rover's code) or 4 (the seed's table)")
+    for sensor, current in config.power.max_current.items():
+        _require(current > 0, "power.max_current." + sensor, source, "must be > 0")
     for f in fields(Timeouts):
         _require(getattr(config.timeouts, f.name) > 0, "timeouts." + f.name, source, "must be > 0")
     for f in fields(OdometryNoise):
         _require(getattr(config.odometry, f.name) >= 0, "odometry." + f.name, source, "must be >= 0")
     sim = config.simulation
-    for name in ("steer_rate", "drive_acceleration", "odometry_period", "eps_period", "current_max"):
+    for name in ("steer_rate", "drive_acceleration", "odometry_period", "eps_period"):
         _require(getattr(sim, name) > 0, "simulation." + name, source, "must be > 0")
     for name in ("orientation_tolerance", "velocity_tolerance"):
         _require(getattr(sim, name) >= 0, "simulation." + name, source, "must be >= 0")

@@ -16,6 +16,8 @@ the command is used:
   rear wheels stay straight (a car).
 - point_turn: wz only; the rover turns on the spot.
 - crab: vx and vy; all wheels parallel, no rotation.
+- vector: vx, vy and wz together, any rigid-body motion (the rover's own
+  MoveControl command: x, y, rz).
 """
 from __future__ import annotations
 
@@ -30,7 +32,9 @@ MODE_ACKERMANN = "ackermann"
 MODE_FRONT_ACKERMANN = "front_ackermann"
 MODE_POINT_TURN = "point_turn"
 MODE_CRAB = "crab"
-MODES: Tuple[str, ...] = (MODE_ACKERMANN, MODE_FRONT_ACKERMANN, MODE_POINT_TURN, MODE_CRAB)
+MODE_VECTOR = "vector"
+MODES: Tuple[str, ...] = (MODE_ACKERMANN, MODE_FRONT_ACKERMANN, MODE_POINT_TURN, MODE_CRAB,
+                          MODE_VECTOR)
 
 NODE_OF_WHEEL: Dict[str, int] = dict(zip(WHEELS, DRIVE_NODES))
 
@@ -100,6 +104,9 @@ class Kinematics:
         elif mode == MODE_CRAB:
             wheels = self._fit(lambda s: (vx, vy * s, 0.0), previous, limited,
                                "sideways velocity reduced to the steering limits")
+        elif mode == MODE_VECTOR:
+            wheels = self._fit(lambda s: (vx, vy * s, wz * s), previous, limited,
+                               "sideways velocity and turn rate reduced to the steering limits")
         else:
             raise KinematicsError("unknown steering mode %r (known: %s)" % (mode, ", ".join(MODES)))
         return self._limit_speed(wheels, limited)
@@ -243,9 +250,12 @@ class Kinematics:
         return pulses * 2.0 * math.pi / self.config.STEER_ENC_PPR + self.config.steering.offsets[wheel]
 
     def speed_to_pps(self, speed: float) -> int:
-        """Rim speed [m/s] -> velocity [drive encoder pulses/s], within MAX_VEL."""
-        pps = int(round(speed / self.config.wheel_circumference * self.config.DRIVE_ENC_PPR))
-        return max(-self.config.MAX_VEL, min(self.config.MAX_VEL, pps))
+        """Rim speed [m/s] -> velocity [drive encoder pulses/s], within MAX_VEL:
+        the wheel rate omega = speed / radius [rad/s] as omega / 2 pi x PPR."""
+        omega = speed / self.config.rover.wheel_radius
+        pps = int(round(omega / (2.0 * math.pi) * self.config.DRIVE_ENC_PPR))
+        limit = self.config.max_velocity_pulses
+        return max(-limit, min(limit, pps))
 
     def pps_to_speed(self, pps: float) -> float:
         """velocity [drive encoder pulses/s] -> rim speed [m/s]."""

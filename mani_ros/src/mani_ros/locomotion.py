@@ -19,13 +19,13 @@ import time
 from typing import Callable, Dict, Iterable, List, Optional, Sequence, Tuple
 
 from .config import WHEELS, ManiConfig
-from .kinematics import (MODE_ACKERMANN, MODE_CRAB, MODE_POINT_TURN, Kinematics,
+from .kinematics import (MODE_ACKERMANN, MODE_CRAB, MODE_POINT_TURN, MODE_VECTOR, Kinematics,
                          KinematicsError, RoverCommand)
 from .protocol import DRIVE_NODES, NODE_NAMES
 
 # LocomotionControl.action goal modes.
 GOAL_WHEELS = 0
-GOAL_MODES: Dict[int, str] = {1: MODE_ACKERMANN, 2: MODE_POINT_TURN, 3: MODE_CRAB}
+GOAL_MODES: Dict[int, str] = {1: MODE_ACKERMANN, 2: MODE_POINT_TURN, 3: MODE_CRAB, 4: MODE_VECTOR}
 
 
 class Planner:
@@ -48,7 +48,7 @@ class Planner:
             command = self.kinematics.body_to_wheels(vx, vy, wz, GOAL_MODES[mode], self.angles)
         else:
             raise KinematicsError("unknown goal mode %r (0 wheels, 1 ackermann, 2 point_turn, "
-                                  "3 crab)" % (mode,))
+                                  "3 crab, 4 vector)" % (mode,))
         return command, self.kinematics.set_points(command)
 
     def plan_goal(self, goal) -> Tuple[RoverCommand, Dict[int, Tuple[int, int]]]:

@@ -93,6 +93,13 @@ class WheelOdometry:
         """The latest state, None before the first integration step."""
         return self._last
 
+    def current(self, stamp: float) -> OdometryState:
+        """The latest state, or the start pose at rest before the first
+        integration step (so a client sees odometry before any feedback)."""
+        if self._last is not None:
+            return self._last
+        return self._state(stamp, 0.0, 0.0, 0.0, 0.0)
+
     def update(self, feedback: OdometryFb, stamp: float) -> Optional[OdometryState]:
         """Take one odometryFb; returns the new state when a round of
         feedback completes, else None."""
@@ -112,7 +119,7 @@ class WheelOdometry:
         # A drive node that was zeroed (switchCmd zeroEncoders) or restarted
         # counts from 0 again: a step no wheel can make at MAX_VEL in the time
         # since its last frame is such a restart, not travel.
-        plausible = (2.0 * self.config.MAX_VEL * max(stamp - known.stamp, MIN_FRAME_INTERVAL)
+        plausible = (2.0 * self.config.max_velocity_pulses * max(stamp - known.stamp, MIN_FRAME_INTERVAL)
                      + self.config.DRIVE_ENC_PPR)
         if abs(counts) > plausible:
             self.counter_resets += 1

@@ -9,10 +9,12 @@ test/unit/test_protocol.py.
 Wire rules in short:
 
 - id = message type base | node number (0 = EPS, 1..4 = drive nodes);
-- integers are two's complement, little-endian (the drive and EPS nodes are
-  STM32 Cortex-M3 boards that copy their C integers into the frame as is);
-- a boolean takes one byte, 0 or 1 (except byte 1 of errorWrn/currentWrn,
-  which carries two flags as bits 0 and 1).
+- integers are two's complement, little-endian (the rover's OBC packs them
+  natively on a little-endian Jetson, the STM32 nodes read them as is);
+- a boolean takes one byte, 0 or 1;
+- orientationCmd/velocityCmd carry one int16: 2 data bytes as the rover's
+  code sends them, or 4 (the seed table's length, bytes 3-4 zero) when
+  can.command_data_length says so.
 
 Every message is a frozen dataclass that validates itself on construction,
 so an out-of-range message can neither be encoded nor come out of decode().
@@ -21,7 +23,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, fields
-from typing import Dict, Tuple, Type, Union
+from typing import Dict, Mapping, Tuple, Type, Union
 
 import can
 
@@ -53,9 +55,17 @@ LOCOMOTION_FB_BASE = 0x0D0
 ODOMETRY_FB_BASE = 0x0E0
 
 # The EPS current sensors in the order of errorWrn/currentWrn, which is also
-# the meaning of CurrentFb.sensor_index.
+# the meaning of CurrentFb.sensor_index (the rover's code names these five).
 EPS_SENSORS: Tuple[str, ...] = (
-    "sensor_1", "sensor_b", "front_left", "rear_left", "rear_right", "front_right")
+    "battery", "front_left", "rear_left", "rear_right", "front_right")
+
+# currentFb carries a reading normalised so that this value is the sensor's
+# maximum current.
+CURRENT_FULL_SCALE = 32768
+
+# Data lengths of orientationCmd/velocityCmd: what the rover's code sends (2)
+# and what the seed's table says (4).
+COMMAND_DATA_LENGTHS: Tuple[int, ...] = (2, 4)
 
 INT16_MIN = -32768
 INT16_MAX = 32767
@@ -119,8 +129,7 @@ class PowerFb:
 
 @dataclass(frozen=True)
 class _SensorFlags:
-    sensor_1: bool = False
-    sensor_b: bool = False
+    battery: bool = False
     front_left: bool = False
     rear_left: bool = False
     rear_right: bool = False
@@ -148,17 +157,28 @@ class CurrentWrn(_SensorFlags):
 @dataclass(frozen=True)
 class CurrentFb:
     """0x0E0 EPS -> OBC: one current reading; sensor_index into EPS_SENSORS,
-    current in milliamperes."""
+    current normalised: CURRENT_FULL_SCALE is the sensor's maximum current."""
     sensor_index: int
     current: int
 
     def __post_init__(self) -> None:
         _check_int(self, "sensor_index", 0, len(EPS_SENSORS) - 1)
-        _check_int(self, "current", 0, INT32_MAX)
+        _check_int(self, "current", -CURRENT_FULL_SCALE, CURRENT_FULL_SCALE)
 
     @property
     def sensor(self) -> str:
         return EPS_SENSORS[self.sensor_index]
+
+    def amperes(self, max_current: Mapping[str, float]) -> float:
+        """The reading in amperes, given each sensor's maximum current [A]."""
+        return self.current / float(CURRENT_FULL_SCALE) * max_current[self.sensor]
+
+    @classmethod
+    def from_amperes(cls, sensor_index: int, amperes: float, maximum: float) -> "CurrentFb":
+        """The reading an EPS sends for a current [A] of a sensor with the
+        given maximum; beyond the maximum it saturates."""
+        value = int(round(amperes / maximum * CURRENT_FULL_SCALE))
+        return cls(sensor_index, max(-CURRENT_FULL_SCALE, min(CURRENT_FULL_SCALE, value)))
 
 
 @dataclass(frozen=True)
@@ -253,29 +273,32 @@ def arbitration_id(message: Message) -> int:
     raise ProtocolError("not a MANI message: %r" % (message,))
 
 
-def _flags_byte(*values: bool) -> int:
-    return sum(1 << bit for bit, value in enumerate(values) if value)
+def check_command_data_length(length: int) -> int:
+    """length if it is one of COMMAND_DATA_LENGTHS, else ValueError."""
+    if isinstance(length, bool) or length not in COMMAND_DATA_LENGTHS:
+        raise ValueError("command data length must be 2 or 4, got %r" % (length,))
+    return length
 
 
-def encode(message: Message) -> Tuple[int, bytes]:
-    """(arbitration id, data) of a message; see docs/mani_protocol.md."""
+def encode(message: Message, command_data_length: int = 2) -> Tuple[int, bytes]:
+    """(arbitration id, data) of a message; see docs/mani_protocol.md.
+    command_data_length: 2 (the rover's code) or 4 (the seed's table) bytes
+    for orientationCmd and velocityCmd."""
+    padding = b"\x00" * (check_command_data_length(command_data_length) - 2)
     can_id = arbitration_id(message)
     if isinstance(message, (PowerCmd, PowerFb)):
         data = bytes([message.motor_power])
     elif isinstance(message, _SensorFlags):
-        data = bytes([_flags_byte(message.sensor_1, message.sensor_b),
-                      message.front_left, message.rear_left,
-                      message.rear_right, message.front_right])
+        data = bytes(getattr(message, name) for name in EPS_SENSORS)
     elif isinstance(message, CurrentFb):
         data = _CURRENT_FB.pack(message.sensor_index, message.current)
     elif isinstance(message, SwitchCmd):
         data = bytes([message.steer_mode, message.drive_mode,
                       message.publisher_mode, message.zero_encoders])
     elif isinstance(message, OrientationCmd):
-        # 4 bytes as the table's data length says; bytes 3-4 reserved (zero).
-        data = _INT16.pack(message.orientation) + b"\x00\x00"
+        data = _INT16.pack(message.orientation) + padding
     elif isinstance(message, VelocityCmd):
-        data = _INT16.pack(message.velocity) + b"\x00\x00"
+        data = _INT16.pack(message.velocity) + padding
     elif isinstance(message, LocomotionFb):
         data = bytes([message.task_completed])
     else:  # OdometryFb; arbitration_id() rejected everything else
@@ -284,9 +307,9 @@ def encode(message: Message) -> Tuple[int, bytes]:
     return can_id, data
 
 
-def to_can_message(message: Message) -> can.Message:
+def to_can_message(message: Message, command_data_length: int = 2) -> can.Message:
     """A python-can frame (standard 11-bit id) carrying the message."""
-    can_id, data = encode(message)
+    can_id, data = encode(message, command_data_length)
     return can.Message(arbitration_id=can_id, data=data, is_extended_id=False)
 
 
@@ -304,12 +327,8 @@ def _bool_at(name: str, data: bytes, index: int) -> bool:
 
 
 def _decode_flags(kind: Type[_SensorFlags], name: str, data: bytes) -> _SensorFlags:
-    _need_length(name, data, 5)
-    if data[0] & ~0x03:
-        raise ProtocolError("%s byte 1 may only use bits 0 (sensor_1) and 1 (sensor_b), "
-                            "got 0x%02X" % (name, data[0]))
-    return kind(bool(data[0] & 1), bool(data[0] & 2),
-                *(_bool_at(name, data, i) for i in range(1, 5)))
+    _need_length(name, data, len(EPS_SENSORS))
+    return kind(*(_bool_at(name, data, i) for i in range(len(EPS_SENSORS))))
 
 
 def decode(can_id: int, data: Union[bytes, bytearray]) -> Message:
@@ -339,7 +358,7 @@ def decode(can_id: int, data: Union[bytes, bytearray]) -> Message:
         _need_length("switchCmd", data, 4)
         return SwitchCmd(node_id, *(_bool_at("switchCmd", data, i) for i in range(4)))
     if base == ORIENTATION_CMD_BASE:
-        # The firmware reads bytes 1-2; a 2-byte frame is accepted as well.
+        # Both data lengths in use carry the value in bytes 1-2.
         _need_length("orientationCmd", data, 2, 4)
         return OrientationCmd(node_id, _INT16.unpack_from(data)[0])
     if base == VELOCITY_CMD_BASE:

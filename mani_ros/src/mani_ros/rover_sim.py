@@ -98,10 +98,17 @@ class RoverSim:
         sim = config.simulation
         self._steer_rate = sim.steer_rate * config.STEER_ENC_PPR / (2.0 * math.pi)   # [steer pulses/s]
         self._drive_accel = sim.drive_acceleration / config.wheel_circumference * config.DRIVE_ENC_PPR  # [pulses/s^2]
-        self.drives: Dict[int, DriveState] = {node: DriveState(node) for node in p.DRIVE_NODES}
+        self.drives: Dict[int, DriveState] = {}
+        for node in p.DRIVE_NODES:
+            # The wheels start straight ahead, in the configured encoding
+            # (the rover's: STEER_ENC_PPR / 4 pulses).
+            straight = int(round(-config.steering.offsets[p.NODE_NAMES[node]]
+                                 * config.STEER_ENC_PPR / (2.0 * math.pi)))
+            self.drives[node] = DriveState(node, orientation=float(straight),
+                                           target_orientation=straight)
         self.motor_power = sim.motor_power_on
         self.eps_silent = False
-        self.forced_current: Dict[int, int] = {}     # sensor index -> mA
+        self.forced_current: Dict[int, float] = {}   # sensor index -> A
         self._reported_errors: Optional[tuple] = None
         self._reported_warnings: Optional[tuple] = None
         self._next_eps = 0.0
@@ -233,33 +240,37 @@ class RoverSim:
 
     # -- EPS -------------------------------------------------------------------
 
-    def currents(self) -> List[int]:
-        """Present current of each EPS sensor [mA] (EPS_SENSORS order)."""
-        limit = self.config.simulation.current_max
+    def _limits(self) -> List[float]:
+        return [self.config.power.max_current[name] for name in p.EPS_SENSORS]
+
+    def currents(self) -> List[float]:
+        """Present current of each EPS sensor [A] (EPS_SENSORS order)."""
+        limits = self._limits()
         wheels = []
-        for node in p.DRIVE_NODES:
+        for node, limit in zip(p.DRIVE_NODES, limits[1:]):
             drive = self.drives[node]
             moving = self.motor_power and (drive.steer_mode or drive.drive_mode)
-            load = abs(drive.velocity) / self.config.MAX_VEL * 0.4 * limit if self.motor_power else 0.0
-            wheels.append(int((0.03 * limit if moving else 0.0) + load))
-        values = [int(0.05 * limit), int(0.05 * limit) + sum(wheels)] + wheels
+            load = (abs(drive.velocity) / self.config.max_velocity_pulses * 0.25 * limit
+                    if self.motor_power else 0.0)
+            wheels.append((0.03 * limit if moving else 0.0) + load)
+        values = [0.05 * limits[0] + sum(wheels)] + wheels
         for index, forced in self.forced_current.items():
             values[index] = forced
-        return [min(value, p.INT32_MAX) for value in values]
+        return values
 
     def _eps(self) -> None:
         if self.eps_silent:
             return
-        limit = self.config.simulation.current_max
+        limits = self._limits()
         currents = self.currents()
-        errors = tuple(c > limit for c in currents)
-        warnings = tuple(c > 0.8 * limit for c in currents)
+        errors = tuple(c > limit for c, limit in zip(currents, limits))
+        warnings = tuple(c > 0.8 * limit for c, limit in zip(currents, limits))
         periodic = self._due(self._next_eps)
         if periodic:
             self._next_eps = self._next(self._next_eps, self.config.simulation.eps_period)
             self._send(p.PowerFb(self.motor_power))
-            for index, current in enumerate(currents):
-                self._send(p.CurrentFb(index, current))
+            for index, (current, limit) in enumerate(zip(currents, limits)):
+                self._send(p.CurrentFb.from_amperes(index, current, limit))
         # A warning frame goes out when its flags change (the all-clear too)
         # and is repeated while any flag is set.
         if errors != self._reported_errors or (periodic and any(errors)):
@@ -280,30 +291,34 @@ class RoverSim:
             else:
                 raise ValueError("node %r is not 0 (EPS) or a drive node 1..4" % (node_id,))
 
-    def force_current(self, sensor_index: int, milliamperes: Optional[int]) -> None:
-        """Force one EPS sensor's current (None: back to the model)."""
+    def force_current(self, sensor_index: int, amperes: Optional[float]) -> None:
+        """Force one EPS sensor's current [A] (None: back to the model)."""
         if not 0 <= sensor_index < len(p.EPS_SENSORS):
-            raise ValueError("sensor %r is not 0..5 (%s)" % (sensor_index, ", ".join(p.EPS_SENSORS)))
+            raise ValueError("sensor %r is not 0..%d (%s)" % (sensor_index, len(p.EPS_SENSORS) - 1,
+                                                             ", ".join(p.EPS_SENSORS)))
         with self._lock:
-            if milliamperes is None:
+            if amperes is None:
                 self.forced_current.pop(sensor_index, None)
             else:
-                self.forced_current[sensor_index] = max(0, min(int(milliamperes), p.INT32_MAX))
+                self.forced_current[sensor_index] = max(0.0, float(amperes))
 
     def inject(self, fault: str, index: int, active: bool = True) -> str:
         """Fault injection by name (the ROS service of the simulated rover):
         silent (index = node 0..4), current_warning / overcurrent (index =
-        sensor 0..5), clear (index = node or sensor, 255 = everything).
+        sensor 0..4), clear (index = node or sensor, 255 = everything).
         Returns what was done; raises ValueError for a bad request."""
-        limit = self.config.simulation.current_max
         if fault == FAULT_SILENT:
             self.set_silent(index, active)
             return "node %d %s" % (index, "silent" if active else "answers again")
         if fault in (FAULT_CURRENT_WARNING, FAULT_OVERCURRENT):
-            level = int(limit * 0.9) if fault == FAULT_CURRENT_WARNING else int(limit * 1.2)
+            if not 0 <= index < len(p.EPS_SENSORS):
+                raise ValueError("sensor %r is not 0..%d (%s)" % (index, len(p.EPS_SENSORS) - 1,
+                                                                 ", ".join(p.EPS_SENSORS)))
+            limit = self._limits()[index]
+            level = limit * (0.9 if fault == FAULT_CURRENT_WARNING else 1.2)
             self.force_current(index, level if active else None)
             return "sensor %s: %s" % (p.EPS_SENSORS[index],
-                                      "%d mA" % level if active else "back to normal")
+                                      "%.1f A" % level if active else "back to normal")
         if fault == FAULT_CLEAR:
             with self._lock:
                 if index == ALL:
@@ -313,7 +328,7 @@ class RoverSim:
                         drive.silent = False
                     return "all faults cleared"
                 if not 0 <= index < len(p.EPS_SENSORS):
-                    raise ValueError("clear needs a node/sensor 0..5 or 255, got %r" % (index,))
+                    raise ValueError("clear needs a node/sensor 0..4 or 255, got %r" % (index,))
                 self.forced_current.pop(index, None)
                 if index <= 4:
                     self.set_silent(index, False)

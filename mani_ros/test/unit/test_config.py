@@ -26,8 +26,9 @@ def test_the_package_yaml_loads_with_its_values():
     config = load_config()
     assert os.path.samefile(config.source, PACKAGE_YAML)
     assert os.path.samefile(default_config_path(), PACKAGE_YAML)
-    assert config.rover.wheel_base == 0.50 and config.rover.track == 0.44
-    assert config.DRIVE_ENC_PPR == 1024 and config.STEER_ENC_PPR == 4096 and config.MAX_VEL == 3000
+    assert config.rover.wheel_base == 0.436 and config.rover.track == 0.4467
+    assert config.DRIVE_ENC_PPR == 8384 and config.STEER_ENC_PPR == 8384
+    assert config.MAX_VEL == pytest.approx(math.pi)
     assert config.can.device == "can0" and config.can.sim_device == "vcan0"
     assert config.frames.odom == "odom" and config.frames.base_link == "base_link"
     assert config.power.overcurrent_switch_off is True
@@ -36,9 +37,10 @@ def test_the_package_yaml_loads_with_its_values():
 
 def test_derived_figures():
     config = load_config()
-    # MAX_VEL 3000 pulses/s with 1024 pulses per revolution of a 0.06 m wheel
-    assert config.max_wheel_speed == pytest.approx(3000 / 1024 * 2 * math.pi * 0.06)
-    assert config.wheel_positions()["rear_right"] == (-0.25, -0.22)
+    # MAX_VEL pi rad/s of a wheel of 0.13677 m diameter: half a revolution a second
+    assert config.max_wheel_speed == pytest.approx(math.pi * 0.13677 / 2)
+    assert config.max_velocity_pulses == 4192
+    assert config.wheel_positions()["rear_right"] == (-0.218, -0.22335)
 
 
 def test_unknown_key_names_key_and_file(tmp_path):
@@ -54,7 +56,11 @@ def test_unknown_key_names_key_and_file(tmp_path):
 @pytest.mark.parametrize("edit, message", [
     (lambda d: d.pop("MAX_VEL"), "missing key MAX_VEL in"),
     (lambda d: d["timeouts"].pop("locomotion"), "missing key timeouts.locomotion in"),
-    (lambda d: d.__setitem__("MAX_VEL", 40000), "MAX_VEL in .* must be in 1..32767"),
+    (lambda d: d.__setitem__("MAX_VEL", 40.0), "MAX_VEL in .* is 53374 drive encoder pulses/s, beyond an int16"),
+    (lambda d: d.__setitem__("MAX_VEL", 0), "MAX_VEL in .* must be > 0"),
+    (lambda d: d["can"].__setitem__("command_data_length", 8), "can.command_data_length in .* must be 2"),
+    (lambda d: d["power"]["max_current"].pop("battery"), "power.max_current in .* must give one current"),
+    (lambda d: d["power"]["max_current"].__setitem__("rear_left", -1), "power.max_current.rear_left in .* must be > 0"),
     (lambda d: d.__setitem__("DRIVE_ENC_PPR", 0), "DRIVE_ENC_PPR in .* must be in 1..32767"),
     (lambda d: d.__setitem__("STEER_ENC_PPR", 4096.5), "STEER_ENC_PPR in .* must be an integer"),
     (lambda d: d["rover"].__setitem__("wheel_radius", -0.1), "rover.wheel_radius in .* must be > 0"),

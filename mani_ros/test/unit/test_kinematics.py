@@ -1,6 +1,7 @@
 """Four-wheel steering kinematics: the wheel angles and speeds obey the rover's
 geometry (one common turn centre), stay within MAX_VEL and the steering
 limits, and become the right set points in encoder pulses."""
+import dataclasses
 import math
 
 import pytest
@@ -10,7 +11,10 @@ from mani_ros.config import WHEELS, config_from_dict, load_config
 from mani_ros.kinematics import (MODE_ACKERMANN, MODE_CRAB, MODE_FRONT_ACKERMANN, MODE_POINT_TURN,
                                  Kinematics, KinematicsError)
 
-CONFIG = load_config()
+# The real rover's geometry and encoders with a faster MAX_VEL (20 rad/s,
+# 26,687 pulses/s, still an int16), so the scenarios below may drive at
+# up to 1 m/s.
+CONFIG = dataclasses.replace(load_config(), MAX_VEL=20.0)
 L, W = CONFIG.rover.wheel_base, CONFIG.rover.track
 PULSES_PER_METRE = CONFIG.DRIVE_ENC_PPR / (2 * math.pi * CONFIG.rover.wheel_radius)
 
@@ -21,6 +25,7 @@ def kinematics(**changes):
     import yaml
     with open(CONFIG.source) as stream:
         data = yaml.safe_load(stream)
+    data["MAX_VEL"] = CONFIG.MAX_VEL
     for path, value in changes.items():
         section, key = path.split("__")
         data[section][key] = value
@@ -48,7 +53,9 @@ def test_straight_ahead_and_back():
         for c in command.wheels.values():
             assert c.angle == pytest.approx(0.0, abs=1e-12) and c.speed == pytest.approx(vx)
         for orientation, velocity in k.set_points(command).values():
-            assert orientation == 0 and velocity == round(vx * PULSES_PER_METRE)
+            # straight ahead is a quarter turn of the steering encoder
+            assert orientation == CONFIG.STEER_ENC_PPR // 4 == 2096
+            assert velocity == round(vx * PULSES_PER_METRE)
 
 
 def test_double_ackermann_turn_has_its_centre_on_the_lateral_axis():
@@ -123,7 +130,7 @@ def test_speeds_are_scaled_together_to_max_vel():
         assert fast.wheels[wheel].angle == pytest.approx(slow.wheels[wheel].angle)
         assert fast.wheels[wheel].speed / top == pytest.approx(
             slow.wheels[wheel].speed / max(abs(c.speed) for c in slow.wheels.values()))
-    assert max(abs(v) for _, v in k.set_points(fast).values()) == CONFIG.MAX_VEL
+    assert max(abs(v) for _, v in k.set_points(fast).values()) == CONFIG.max_velocity_pulses
 
 
 def test_tight_steering_limits_reduce_the_turn_rate_not_the_geometry():
@@ -160,7 +167,7 @@ def test_a_stopped_wheel_keeps_its_angle():
 
 
 def test_of_two_equivalent_angles_the_nearer_one_is_chosen():
-    k = kinematics()   # limits +-100 deg
+    k = kinematics(steering__min_angle=-1.745, steering__max_angle=1.745)   # +-100 deg
     # turn centre 0.25 m left of base_link: the inner front wheel needs 83 deg,
     # or the equivalent -97 deg rolling backwards; both are within the limits
     ahead = k.body_to_wheels(0.25, 0.0, 1.0, MODE_ACKERMANN).wheels["front_left"]
@@ -218,7 +225,8 @@ def test_units_and_offsets():
     assert k.angle_to_pulses("front_right", 0.0) == round(0.2 * ppr / (2 * math.pi))
     assert k.pulses_to_angle("front_right", k.angle_to_pulses("front_right", 0.5)) == pytest.approx(0.5, abs=1e-3)
     assert k.speed_to_pps(1.0) == round(PULSES_PER_METRE)
-    assert k.speed_to_pps(100.0) == CONFIG.MAX_VEL and k.speed_to_pps(-100.0) == -CONFIG.MAX_VEL
+    top = CONFIG.max_velocity_pulses
+    assert k.speed_to_pps(100.0) == top and k.speed_to_pps(-100.0) == -top
     assert k.pps_to_speed(CONFIG.DRIVE_ENC_PPR) == pytest.approx(2 * math.pi * CONFIG.rover.wheel_radius)
 
 
@@ -228,5 +236,6 @@ def test_command_messages_address_every_drive_node():
     frames = [p.encode(m) for m in messages]
     assert [can_id for can_id, _ in frames] == [0x0B1, 0x0C1, 0x0B2, 0x0C2, 0x0B3, 0x0C3, 0x0B4, 0x0C4]
     front_left = k.body_to_wheels(0.5, 0.0, 0.8, MODE_ACKERMANN).wheels["front_left"]
-    assert messages[0].orientation == round(front_left.angle * CONFIG.STEER_ENC_PPR / (2 * math.pi))
+    offset = CONFIG.steering.offsets["front_left"]
+    assert messages[0].orientation == round((front_left.angle - offset) * CONFIG.STEER_ENC_PPR / (2 * math.pi))
     assert messages[1].velocity == round(front_left.speed * PULSES_PER_METRE)

@@ -21,13 +21,15 @@ def test_planner_turns_goals_into_set_points_per_node():
     planner = Planner(CONFIG)
     command, set_points = planner.plan(ACKERMANN, 0.5, 0.0, 0.0)
     assert sorted(set_points) == [1, 2, 3, 4]
-    assert set(set_points.values()) == {(0, planner.kinematics.speed_to_pps(0.5))}
+    straight = planner.kinematics.config.STEER_ENC_PPR // 4   # the steering encoder reads 0 at -90 deg
+    assert set(set_points.values()) == {(straight, planner.kinematics.speed_to_pps(0.5))}
     _, turning = planner.plan(POINT_TURN, 0.0, 0.0, 0.5)
-    assert turning[p.FRONT_LEFT][0] == -turning[p.REAR_LEFT][0] != 0
+    # front and rear steer opposite, around straight ahead
+    assert turning[p.FRONT_LEFT][0] - straight == -(turning[p.REAR_LEFT][0] - straight) != 0
     _, crab = planner.plan(CRAB, 0.2, 0.2, 0.0)
-    assert {o for o, _ in crab.values()} == {CONFIG.STEER_ENC_PPR // 8}
+    assert {o for o, _ in crab.values()} == {straight + CONFIG.STEER_ENC_PPR // 8}   # 45 deg left
     _, wheels = planner.plan(GOAL_WHEELS, 0, 0, 0, [0.1, 0.0, 0.0, -0.1], [0.2, 0.2, 0.2, 0.2])
-    assert wheels[p.FRONT_LEFT][0] == round(0.1 * CONFIG.STEER_ENC_PPR / (2 * math.pi))
+    assert wheels[p.FRONT_LEFT][0] == straight + round(0.1 * CONFIG.STEER_ENC_PPR / (2 * math.pi))
 
 
 def test_planner_refuses_bad_goals_with_a_reason():

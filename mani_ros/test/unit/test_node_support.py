@@ -43,10 +43,10 @@ def test_configuration_sources_in_order(tmp_path):
         data = yaml.safe_load(stream)
     assert os.path.samefile(node_config(getter({})).source, CONFIG.source)
     assert node_config(getter({"mani": data})).source == "the ROS parameters under 'mani'"
-    data["MAX_VEL"] = 1000
+    data["MAX_VEL"] = 1.5
     path = tmp_path / "mine.yaml"
     path.write_text(yaml.safe_dump(data))
-    assert node_config(getter({"~config": str(path), "mani": {}})).MAX_VEL == 1000
+    assert node_config(getter({"~config": str(path), "mani": {}})).MAX_VEL == 1.5
     del data["MAX_VEL"]
     with pytest.raises(ConfigError, match="missing key MAX_VEL in the ROS parameters under 'mani'"):
         node_config(getter({"mani": data}))

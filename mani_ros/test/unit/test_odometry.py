@@ -1,5 +1,6 @@
 """Wheel odometry from odometryFb: known wheel motions give the known pose,
 a square path returns to its start, 16-bit counters wrap without a jump."""
+import dataclasses
 import math
 
 import pytest
@@ -10,7 +11,10 @@ from mani_ros.kinematics import MODE_ACKERMANN, MODE_POINT_TURN, NODE_OF_WHEEL, 
 from mani_ros.odometry import (UNOBSERVED_VARIANCE, WheelOdometry, counters_from_count, wrap16,
                                yaw_to_quaternion)
 
-CONFIG = load_config()
+# The real rover's geometry and encoders with a faster MAX_VEL (20 rad/s,
+# 26,687 pulses/s, still an int16), so the scenarios below may drive at
+# up to 1 m/s.
+CONFIG = dataclasses.replace(load_config(), MAX_VEL=20.0)
 PPR = CONFIG.DRIVE_ENC_PPR
 
 
@@ -156,7 +160,8 @@ def test_pulse_counter_wrap_is_no_jump():
     odometry = WheelOdometry(CONFIG)
     for pulses in (32700, -32700):
         for node in p.DRIVE_NODES:
-            odometry.update(p.OdometryFb(node, 0, 100, pulses, 0), 0.0)
+            # orientation STEER_ENC_PPR / 4: straight ahead
+            odometry.update(p.OdometryFb(node, CONFIG.STEER_ENC_PPR // 4, 100, pulses, 0), 0.0)
     state = odometry.state
     assert state.x == pytest.approx(136 * Kinematics(CONFIG).metres_per_pulse)
 

@@ -20,20 +20,22 @@ def frame(message):
     (p.PowerCmd(True), 0x000, "01"),
     (p.PowerCmd(False), 0x000, "00"),
     (p.PowerFb(True), 0x030, "01"),
-    (p.ErrorWrn(sensor_1=True), 0x010, "0100000000"),
-    (p.ErrorWrn(sensor_b=True), 0x010, "0200000000"),
+    (p.ErrorWrn(battery=True), 0x010, "0100000000"),
+    (p.ErrorWrn(front_left=True), 0x010, "0001000000"),
     (p.ErrorWrn(front_left=True, front_right=True), 0x010, "0001000001"),
-    (p.CurrentWrn(True, True, True, True, True, True), 0x020, "0301010101"),
+    (p.CurrentWrn(True, True, True, True, True), 0x020, "0101010101"),
     (p.CurrentWrn(rear_left=True), 0x020, "0000010000"),
     (p.CurrentWrn(rear_right=True), 0x020, "0000000100"),
     (p.CurrentFb(2, 1500), 0x0E0, "02000000dc050000"),
+    (p.CurrentFb(0, -32768), 0x0E0, "000000000080ffff"),
+    (p.CurrentFb(4, 32768), 0x0E0, "0400000000800000"),
     (p.SwitchCmd(p.FRONT_LEFT, steer_mode=True), 0x0A1, "01000000"),
     (p.SwitchCmd(p.FRONT_RIGHT, zero_encoders=True), 0x0A4, "00000001"),
     (p.SwitchCmd(p.REAR_LEFT, False, True, True, False), 0x0A2, "00010100"),
-    (p.OrientationCmd(p.REAR_RIGHT, 1000), 0x0B3, "e8030000"),
-    (p.OrientationCmd(p.FRONT_LEFT, -1), 0x0B1, "ffff0000"),
-    (p.VelocityCmd(p.REAR_LEFT, -32768), 0x0C2, "00800000"),
-    (p.VelocityCmd(p.FRONT_RIGHT, 32767), 0x0C4, "ff7f0000"),
+    (p.OrientationCmd(p.REAR_RIGHT, 1000), 0x0B3, "e803"),
+    (p.OrientationCmd(p.FRONT_LEFT, -1), 0x0B1, "ffff"),
+    (p.VelocityCmd(p.REAR_LEFT, -32768), 0x0C2, "0080"),
+    (p.VelocityCmd(p.FRONT_RIGHT, 32767), 0x0C4, "ff7f"),
     (p.LocomotionFb(p.REAR_RIGHT, True), 0x0D3, "01"),
     (p.OdometryFb(p.FRONT_LEFT, 256, -2, 32767, -32768), 0x0E1, "0001feffff7f0080"),
 ])
@@ -50,12 +52,12 @@ def all_messages():
     yield p.PowerCmd(True)
     yield p.PowerFb(False)
     yield p.PowerFb(True)
-    for bits in range(64):
-        flags = [bool(bits & (1 << i)) for i in range(6)]
+    for bits in range(32):
+        flags = [bool(bits & (1 << i)) for i in range(5)]
         yield p.ErrorWrn(*flags)
         yield p.CurrentWrn(*flags)
-    for index in range(6):
-        for current in (0, 1, 80000, p.INT32_MAX):
+    for index in range(5):
+        for current in (-32768, 0, 1, 16384, 32768):
             yield p.CurrentFb(index, current)
     for node in p.DRIVE_NODES:
         for bits in range(16):
@@ -77,14 +79,14 @@ def test_every_message_round_trips_through_a_can_frame():
         assert can_frame.arbitration_id == p.arbitration_id(message)
         assert p.decode_can_message(can_frame) == message
         count += 1
-    assert count == 292
+    assert count == 229
 
 
 def test_every_id_of_the_table_decodes_and_nothing_else_does():
     known = {0x000, 0x010, 0x020, 0x030, 0x0E0}
     for base in (0x0A0, 0x0B0, 0x0C0, 0x0D0, 0x0E0):
         known.update(base | node for node in (1, 2, 3, 4))
-    lengths = {0x000: 1, 0x010: 5, 0x020: 5, 0x030: 1, 0x0A: 4, 0x0B: 4, 0x0C: 4, 0x0D: 1, 0x0E: 8}
+    lengths = {0x000: 1, 0x010: 5, 0x020: 5, 0x030: 1, 0x0A: 4, 0x0B: 2, 0x0C: 2, 0x0D: 1, 0x0E: 8}
     for can_id in range(0x800):
         length = lengths.get(can_id, lengths.get(can_id >> 4, 8))
         if can_id in known:
@@ -100,7 +102,7 @@ def test_current_fb_and_odometry_fb_share_the_0x0e_range_by_node_number():
         assert p.decode(0x0E0 | node, bytes(8)) == p.OdometryFb(node, 0, 0, 0, 0)
 
 
-def test_orientation_and_velocity_commands_accept_two_byte_frames():
+def test_orientation_and_velocity_commands_accept_four_byte_frames_too():
     assert p.decode(0x0B1, bytes.fromhex("3412")) == p.OrientationCmd(1, 0x1234)
     assert p.decode(0x0C4, bytes.fromhex("feff")) == p.VelocityCmd(4, -2)
     # the reserved bytes 3-4 are not part of the value
@@ -114,11 +116,12 @@ def test_orientation_and_velocity_commands_accept_two_byte_frames():
     (0x030, "ff", "powerFb byte 1 must be 0 or 1, got 0xFF"),
     (0x010, "00000000", "errorWrn needs 5 data bytes, got 4"),
     (0x010, "000000000000", "errorWrn needs 5 data bytes, got 6"),
-    (0x010, "0400000000", "errorWrn byte 1 may only use bits 0 .sensor_1. and 1"),
+    (0x010, "0200000000", "errorWrn byte 1 must be 0 or 1, got 0x02"),
     (0x020, "0000020000", "currentWrn byte 3 must be 0 or 1, got 0x02"),
     (0x0E0, "00000000", "currentFb needs 8 data bytes, got 4"),
-    (0x0E0, "0600000000000000", r"CurrentFb.sensor_index = 6 is out of range \[0, 5\]"),
-    (0x0E0, "00000000ffffffff", r"CurrentFb.current = -1 is out of range \[0, 2147483647\]"),
+    (0x0E0, "0500000000000000", r"CurrentFb.sensor_index = 5 is out of range \[0, 4\]"),
+    (0x0E0, "0000000001800000", r"CurrentFb.current = 32769 is out of range \[-32768, 32768\]"),
+    (0x0E0, "00000000ff7fffff", r"CurrentFb.current = -32769 is out of range"),
     (0x0A1, "010101", "switchCmd needs 4 data bytes, got 3"),
     (0x0A2, "01010103", "switchCmd byte 4 must be 0 or 1, got 0x03"),
     (0x0B1, "01", "orientationCmd needs 2 or 4 data bytes, got 1"),
@@ -154,7 +157,7 @@ def test_protocol_error_is_a_value_error():
     (lambda: p.PowerCmd(2), r"PowerCmd.motor_power must be a boolean \(0 or 1\), got 2"),
     (lambda: p.ErrorWrn(front_left="yes"), "ErrorWrn.front_left must be a boolean"),
     (lambda: p.CurrentFb(-1, 0), "CurrentFb.sensor_index = -1 is out of range"),
-    (lambda: p.CurrentFb(0, p.INT32_MAX + 1), "CurrentFb.current = 2147483648 is out of range"),
+    (lambda: p.CurrentFb(0, 32769), "CurrentFb.current = 32769 is out of range"),
 ])
 def test_out_of_range_messages_cannot_be_built(make, reason):
     with pytest.raises(p.ProtocolError, match=reason):
@@ -172,9 +175,9 @@ def test_booleans_given_as_0_1_become_bool():
 
 
 def test_warning_flags_name_the_active_sensors():
-    warning = p.decode(0x010, bytes.fromhex("0201000001"))
-    assert warning.active() == ("sensor_b", "front_left", "front_right")
-    assert p.CurrentFb(4, 10).sensor == "rear_right"
+    warning = p.decode(0x010, bytes.fromhex("0101000001"))
+    assert warning.active() == ("battery", "front_left", "front_right")
+    assert p.CurrentFb(3, 10).sensor == "rear_right"
 
 
 def test_frames_that_are_not_data_frames_are_refused():
@@ -218,5 +221,6 @@ def test_the_candump_example_of_the_specification_decodes_as_described():
     assert [len(bytes.fromhex(data)) for _, _, data in lines] == [int(n) for _, n, _ in lines]
     assert messages == [
         p.PowerCmd(True), p.PowerFb(True), p.SwitchCmd(1, True, True, True, False),
-        p.OrientationCmd(1, 1000), p.VelocityCmd(1, 500), p.LocomotionFb(1, True),
-        p.OdometryFb(1, 1000, 500, 300, 5), p.ErrorWrn(front_left=True)]
+        p.OrientationCmd(1, 2096), p.VelocityCmd(1, 3902), p.LocomotionFb(1, True),
+        p.OdometryFb(1, 2096, 3902, 300, 5), p.ErrorWrn(front_left=True),
+        p.CurrentFb(0, 16384)]

@@ -15,6 +15,9 @@ from mani_ros.rover_sim import TICK, RoverSim, main
 
 CONFIG = load_config()
 SIM = CONFIG.simulation
+# The simulated wheels start straight ahead: a quarter turn of the steering
+# encoder, whose zero is at -90 deg on the rover.
+STRAIGHT = CONFIG.STEER_ENC_PPR // 4
 _channels = itertools.count()
 
 
@@ -81,8 +84,8 @@ def enable(rover, node_id, publish=True):
 
 def test_a_locomotion_command_is_reached_gradually_then_reported_once(rover):
     enable(rover, p.FRONT_LEFT)
-    rover.send(p.OrientationCmd(p.FRONT_LEFT, 800))
-    rover.send(p.VelocityCmd(p.FRONT_LEFT, 1500))
+    rover.send(p.OrientationCmd(p.FRONT_LEFT, STRAIGHT + 800))
+    rover.send(p.VelocityCmd(p.FRONT_LEFT, 3000))
     got = rover.run(3.0)
     done = of(p.LocomotionFb, got)
     assert done == [p.LocomotionFb(p.FRONT_LEFT, True)]
@@ -93,23 +96,23 @@ def test_a_locomotion_command_is_reached_gradually_then_reported_once(rover):
     steer_step = SIM.steer_rate * CONFIG.STEER_ENC_PPR / 6.283185307 * SIM.odometry_period
     assert all(0 <= b - a <= steer_step + 1 for a, b in zip(orientations, orientations[1:]))
     assert len(set(orientations)) > 5 and len(set(velocities)) > 5
-    assert orientations[-1] == 800 and velocities[-1] == 1500
+    assert orientations[-1] == STRAIGHT + 800 and velocities[-1] == 3000
     # the locomotionFb came after the set points were within tolerance
     index = rover.received.index(done[0])
     before = of(p.OdometryFb, rover.received[:index], p.FRONT_LEFT)
-    assert abs(before[-1].orientation - 800) > SIM.orientation_tolerance or \
-        abs(before[-1].velocity - 1500) > SIM.velocity_tolerance
-    # the wheel turns: the drive counter advances at about 1500 pulses/s
+    assert abs(before[-1].orientation - STRAIGHT - 800) > SIM.orientation_tolerance or \
+        abs(before[-1].velocity - 3000) > SIM.velocity_tolerance
+    # the wheel turns: the drive counter advances at about 3000 pulses/s
     count = lambda m: m.revolutions * CONFIG.DRIVE_ENC_PPR + m.pulses
     later = of(p.OdometryFb, rover.run(1.0), p.FRONT_LEFT)
-    assert count(later[-1]) - count(odometry[-1]) == pytest.approx(1500, rel=0.1)
+    assert count(later[-1]) - count(odometry[-1]) == pytest.approx(3000, rel=0.1)
     assert of(p.LocomotionFb, rover.received[index + 1:]) == []
 
 
 def test_every_wheel_answers_for_itself(rover):
     for node in p.DRIVE_NODES:
         enable(rover, node, publish=False)
-        rover.send(p.OrientationCmd(node, -100 * node))
+        rover.send(p.OrientationCmd(node, STRAIGHT - 100 * node))
         rover.send(p.VelocityCmd(node, 0))
     got = rover.run(1.0)
     assert sorted(m.node_id for m in of(p.LocomotionFb, got)) == [1, 2, 3, 4]
@@ -122,7 +125,7 @@ def test_without_switch_command_nothing_moves_and_nothing_completes(rover):
     rover.send(p.SwitchCmd(p.REAR_LEFT, publisher_mode=True))
     got = rover.run(2.0)
     assert of(p.LocomotionFb, got) == []
-    assert {(m.orientation, m.velocity) for m in of(p.OdometryFb, got)} == {(0, 0)}
+    assert {(m.orientation, m.velocity) for m in of(p.OdometryFb, got)} == {(STRAIGHT, 0)}
 
 
 def test_power_command_toggles_power_feedback_and_the_motors(rover):
@@ -133,7 +136,7 @@ def test_power_command_toggles_power_feedback_and_the_motors(rover):
     got = rover.run(1.0)
     assert of(p.LocomotionFb, got) == []
     assert set(of(p.PowerFb, got)) == {p.PowerFb(False)}            # periodic report
-    assert {m.orientation for m in of(p.OdometryFb, got)} == {0}
+    assert {m.orientation for m in of(p.OdometryFb, got)} == {STRAIGHT}
     rover.send(p.PowerCmd(True))
     assert rover.drain() == [p.PowerFb(True)]
     assert of(p.LocomotionFb, rover.run(1.0)) == [p.LocomotionFb(p.REAR_RIGHT, True)]
@@ -162,9 +165,9 @@ def test_zero_encoders_clears_orientation_and_counters(rover):
 
 def test_revolutions_build_up_and_pulses_stay_within_a_revolution(rover):
     enable(rover, p.REAR_LEFT)
-    rover.send(p.VelocityCmd(p.REAR_LEFT, -3000))
+    rover.send(p.VelocityCmd(p.REAR_LEFT, -8000))
     odometry = of(p.OdometryFb, rover.run(4.0), p.REAR_LEFT)
-    assert odometry[-1].revolutions <= -9
+    assert odometry[-1].revolutions <= -3
     assert all(abs(m.pulses) < CONFIG.DRIVE_ENC_PPR for m in odometry)
 
 
@@ -172,36 +175,37 @@ def test_a_silent_node_never_answers(rover):
     rover.sim.inject("silent", p.REAR_RIGHT, True)
     for node in p.DRIVE_NODES:
         enable(rover, node)
-        rover.send(p.OrientationCmd(node, 100))
+        rover.send(p.OrientationCmd(node, STRAIGHT + 100))
     got = rover.run(1.0)
     assert sorted(m.node_id for m in of(p.LocomotionFb, got)) == [1, 2, 4]
     assert of(p.OdometryFb, got, p.REAR_RIGHT) == []
     assert rover.sim.inject("clear", 255) == "all faults cleared"
-    rover.send(p.OrientationCmd(p.REAR_RIGHT, 100))   # commands count again from now on
+    rover.send(p.OrientationCmd(p.REAR_RIGHT, STRAIGHT + 100))   # commands count again from now on
     enable(rover, p.REAR_RIGHT)
     assert of(p.LocomotionFb, rover.run(1.0)) == [p.LocomotionFb(p.REAR_RIGHT, True)]
 
 
-def test_eps_reports_power_and_six_currents_periodically(rover):
+def test_eps_reports_power_and_five_currents_periodically(rover):
     got = rover.run(SIM.eps_period * 2 + 0.05)
     assert len(of(p.PowerFb, got)) == 3
     readings = of(p.CurrentFb, got)
-    assert len(readings) == 18 and {m.sensor_index for m in readings} == set(range(6))
-    assert all(m.current < 0.8 * SIM.current_max for m in readings)
+    assert len(readings) == 15 and {m.sensor_index for m in readings} == set(range(5))
+    assert all(0 <= m.current < 0.8 * p.CURRENT_FULL_SCALE for m in readings)
     # nothing abnormal: one all-clear errorWrn/currentWrn at start, no repeats
     assert of(p.ErrorWrn, got) == [p.ErrorWrn()] and of(p.CurrentWrn, got) == [p.CurrentWrn()]
 
 
 def test_injected_overcurrent_shows_as_error_warning_and_reading(rover):
     rover.run(0.1)
-    rover.sim.inject("overcurrent", 3, True)      # rear_left
+    rover.sim.inject("overcurrent", 2, True)      # rear_left
     got = rover.run(SIM.eps_period * 2)
     errors = of(p.ErrorWrn, got)
     assert errors[0] == p.ErrorWrn(rear_left=True) and len(errors) >= 2   # repeated while active
     assert errors[0].active() == ("rear_left",)
     assert of(p.CurrentWrn, got)[0] == p.CurrentWrn(rear_left=True)   # above 80 % too
-    assert all(m.current > SIM.current_max for m in of(p.CurrentFb, got) if m.sensor_index == 3)
-    rover.sim.inject("overcurrent", 3, False)
+    # beyond the maximum the normalised reading saturates at full scale
+    assert all(m.current == p.CURRENT_FULL_SCALE for m in of(p.CurrentFb, got) if m.sensor_index == 2)
+    rover.sim.inject("overcurrent", 2, False)
     got = rover.run(SIM.eps_period * 2)
     assert of(p.ErrorWrn, got) == [p.ErrorWrn()]   # the all-clear, once
 
@@ -210,16 +214,16 @@ def test_injected_current_warning_is_not_an_error(rover):
     rover.run(0.1)
     rover.sim.inject("current_warning", 0, True)
     got = rover.run(0.1)
-    assert of(p.CurrentWrn, got) == [p.CurrentWrn(sensor_1=True)]
+    assert of(p.CurrentWrn, got) == [p.CurrentWrn(battery=True)]
     assert of(p.ErrorWrn, got) == []
 
 
 def test_driving_wheels_draw_more_current(rover):
     idle = {m.sensor_index: m.current for m in of(p.CurrentFb, rover.run(SIM.eps_period + 0.05))}
     enable(rover, p.FRONT_LEFT)
-    rover.send(p.VelocityCmd(p.FRONT_LEFT, CONFIG.MAX_VEL))
+    rover.send(p.VelocityCmd(p.FRONT_LEFT, CONFIG.max_velocity_pulses))
     busy = {m.sensor_index: m.current for m in of(p.CurrentFb, rover.run(2.0))}
-    assert busy[2] > idle[2] and busy[1] > idle[1] and busy[5] == idle[5]
+    assert busy[1] > idle[1] and busy[0] > idle[0] and busy[4] == idle[4]
 
 
 def test_fault_requests_are_checked():
@@ -228,7 +232,7 @@ def test_fault_requests_are_checked():
         sim.inject("melt", 1)
     with pytest.raises(ValueError, match="node 7 is not 0 .EPS. or a drive node 1..4"):
         sim.inject("silent", 7)
-    with pytest.raises(ValueError, match="sensor 6 is not 0..5"):
+    with pytest.raises(ValueError, match="sensor 6 is not 0..4"):
         sim.inject("overcurrent", 6)
     with pytest.raises(ValueError, match="clear needs"):
         sim.inject("clear", 9)
@@ -330,14 +334,14 @@ def test_closed_loop_kinematics_simulator_odometry_follows_the_commanded_arc(rov
     back through odometryFb: the pose moves along the commanded arc."""
     kinematics = Kinematics(CONFIG)
     odometry = WheelOdometry(CONFIG)
-    vx, wz = 0.3, 0.25
+    vx, wz = 0.15, 0.12   # within MAX_VEL (0.215 m/s at the rim)
     for node in p.DRIVE_NODES:
         enable(rover, node)
     for message in kinematics.command_messages(kinematics.body_to_wheels(vx, 0.0, wz, MODE_ACKERMANN)):
         rover.send(message)
     steering_time = 1.0   # the wheels reach their angles and speeds meanwhile
     state = None
-    for message in rover.run(steering_time + 4.0):
+    for message in rover.run(steering_time + 6.0):
         if isinstance(message, p.OdometryFb):
             state = odometry.update(message, rover.sim.time) or state
     assert len(of(p.LocomotionFb, rover.received)) == 4
