@@ -78,7 +78,7 @@ _UNIT_KEYS = tuple(DEFAULT_UNITS)
 PDO_LAYOUTS = ("dcf", "compact")
 
 _BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator"}
-_SYNC_KEYS = {"interval_ms", "update_ms", "overflow"}
+_SYNC_KEYS = {"interval_ms", "update_ms", "overflow", "kernel_timer"}
 _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
               "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes"}
@@ -110,6 +110,9 @@ class SyncConfig:
     interval_ms: float = 0.0   # 0: no SYNC producer
     update_ms: float = 0.0     # period of the control cycle
     overflow: int = 0          # 0: SYNC without counter, else counter 1..overflow
+    # SYNC from the kernel's broadcast manager (SocketCAN) with the cycle
+    # paced between SYNCs, instead of the cycle sending each SYNC itself
+    kernel_timer: bool = False
 
 
 @dataclass(frozen=True)
@@ -328,7 +331,8 @@ def _load_sync(r: _Reader, params: Mapping[str, Any]) -> SyncConfig:
     overflow = r.integer(sync.get("overflow", 0), "sync/overflow", 0, 240)
     if overflow == 1:
         raise r.fail("sync/overflow", "1 is not allowed by CiA 301: use 0 (no counter) or 2..240")
-    return SyncConfig(interval, update, overflow)
+    kernel_timer = r.boolean(sync.get("kernel_timer", False), "sync/kernel_timer")
+    return SyncConfig(interval, update, overflow, kernel_timer)
 
 
 def _load_heartbeat(r: _Reader, params: Mapping[str, Any]) -> Optional[HeartbeatConfig]:

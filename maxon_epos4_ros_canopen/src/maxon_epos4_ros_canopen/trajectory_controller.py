@@ -68,7 +68,7 @@ class JointTrajectoryController(Controller):
 
     def __init__(self, name: str, params: Mapping[str, Any], joints: Sequence[str],
                  required_drive_mode: Optional[int], position_limits: Optional[Mapping[str, Tuple[float, float]]] = None,
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(name, params, joints, required_drive_mode)
         try:
             tolerances = tolerances_from_constraints(self.joints, params.get("constraints"), name + "/constraints")

@@ -84,8 +84,8 @@ FUNCTIONS: Dict[str, Tuple[Callable[..., float], int, Optional[int]]] = {
     "sqrt": (math.sqrt, 1, 1),
     "deg2rad": (math.radians, 1, 1),
     "rad2deg": (math.degrees, 1, 1),
-    "min": (min, 1, None),
-    "max": (max, 1, None),
+    "min": (lambda *vals: min(vals), 1, None),
+    "max": (lambda *vals: max(vals), 1, None),
     "avg": (_avg, 1, None),
     "norm": (_norm, 3, 3),
     "smooth": (_smooth, 3, 3),
@@ -357,4 +357,31 @@ def compile_expression(text: str) -> Expression:
     parser = _Parser(text)
     fn, const = parser.parse()
     names = tuple(parser.plain) + tuple(parser.variables)
-    return Expression(text, fn, names, tuple(parser.variables.values()), const)
+    expr = Expression(text, fn, names, tuple(parser.variables.values()), const)
+    if not _finite_somewhere(expr):
+        raise UnitExpressionError("%r gives NaN or infinity for every input: it can never convert a value" % text)
+    return expr
+
+
+# Inputs an expression is tried with at load: a conversion that is finite
+# for none of them would refuse every command or publish only NaN.
+_PROBES = (0.0, 1.0, -1.0, 0.5, -0.5, 2.0, 3.0, 1000.0, -1000.0, 1e6, -1e6, 0.001, 90.0)
+
+
+def _finite_somewhere(expr: Expression) -> bool:
+    names = expr.variables
+    if not names:
+        return math.isfinite(expr.evaluate({}))
+    # every variable at every probe value would be len(_PROBES)**n points:
+    # try the diagonal (all at one value) and each variable on its own
+    for value in _PROBES:
+        if math.isfinite(expr.evaluate({n: value for n in names})):
+            return True
+    for name in names:
+        for value in _PROBES:
+            for rest in (1.0, 0.0):
+                env = {n: rest for n in names}
+                env[name] = value
+                if math.isfinite(expr.evaluate(env)):
+                    return True
+    return False

@@ -383,8 +383,9 @@ def test_reboot_is_detected_and_recover_reconfigures(rig):
     assert rig.read(0x6061) == 1 and rig.state() == State.OPERATION_ENABLED
 
 
-def test_sync_counter_overflow(rig):
-    d = rig.start(sync={"interval_ms": 10, "overflow": 4})
+@pytest.mark.parametrize("kernel_timer", [False, True])  # the virtual bus has no kernel timer: the cycle sends
+def test_sync_counter_overflow(rig, kernel_timer):
+    d = rig.start(sync={"interval_ms": 10, "overflow": 4, "kernel_timer": kernel_timer})
     assert d.init().success
     rig.drain()
     assert until(lambda: len(rig.sent(0x080)) > 12)

@@ -52,9 +52,10 @@ def test_yaml_numbers_are_accepted():
     assert compile_expression(2.5).evaluate({}) == 2.5
 
 
-@pytest.mark.parametrize("text", ["1/0", "sqrt(-1)", "10^400", "norm(1, 2, 2)"])
-def test_domain_errors_give_nan_or_inf_never_raise(text):
-    value = compile_expression(text).evaluate({})
+@pytest.mark.parametrize("text, env", [("1/pos", {"pos": 0.0}), ("sqrt(pos)", {"pos": -1.0}),
+                                       ("10^pos", {"pos": 400.0}), ("norm(pos, 2, vel)", {"pos": 1.0, "vel": 2.0})])
+def test_domain_errors_give_nan_or_inf_never_raise(text, env):
+    value = compile_expression(text).evaluate(env)
     assert not math.isfinite(value)
 
 
@@ -99,3 +100,28 @@ def test_refused_at_compile_time(text):
 def test_error_says_where():
     with pytest.raises(UnitExpressionError, match=r"unknown name 'foo' .* at character 6 of 'rint\(foo\)'"):
         compile_expression("rint(foo)")
+
+
+@pytest.mark.parametrize("text, env, expected", [
+    ("min(pos)", {"pos": 3.0}, 3.0),
+    ("max(obj6064)", {"obj6064": -2.0}, -2.0),
+    ("min(pos, vel)", {"pos": 3.0, "vel": -1.0}, -1.0),
+])
+def test_min_and_max_of_one_argument_are_that_argument(text, env, expected):
+    assert compile_expression(text).evaluate(env) == expected
+
+
+@pytest.mark.parametrize("text", ["1/0", "sqrt(-1)", "pos/0", "0*obj6064/0", "sqrt(-1 - abs(pos))"])
+def test_expressions_never_finite_are_refused_at_load(text):
+    with pytest.raises(UnitExpressionError, match="NaN or infinity for every input"):
+        compile_expression(text)
+
+
+def test_a_never_finite_expression_names_its_key_and_file():
+    from maxon_epos4_ros_canopen.config import ConfigError, load_config
+    import os
+    dcf = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "epos4_node1.dcf")
+    params = {"sync": {"interval_ms": 10},
+              "nodes": {"node1": {"id": 1, "name": "j", "eds_file": dcf, "pos_to_device": "pos/0"}}}
+    with pytest.raises(ConfigError, match="node_layer.yaml.*nodes/node1/pos_to_device"):
+        load_config(params, "node_layer.yaml")

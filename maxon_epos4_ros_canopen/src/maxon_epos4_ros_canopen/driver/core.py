@@ -513,13 +513,14 @@ class Driver:
     def _start_cycle(self, axes: List[Axis]) -> None:
         sync = self.config.sync
         if sync.interval_ms > 0:
-            # Periodic SYNC, from the kernel's broadcast manager on SocketCAN:
-            # no scheduling delay of this process moves a SYNC. When SYNC and
-            # cycle share a period the cycle is paced between two SYNCs (see
-            # _run): its RxPDOs only have to land before the next one.
-            # Without a kernel timer (python-can's virtual bus, no can-bcm)
-            # the cycle sends SYNC itself, right after its RxPDOs: a second
-            # thread would only add its own scheduling jitter.
+            # When SYNC and cycle share a period the cycle sends each SYNC
+            # right after its RxPDOs, so every SYNC carries fresh targets.
+            # With sync/kernel_timer the kernel's broadcast manager sends
+            # SYNC (SocketCAN; no scheduling delay of this process moves a
+            # SYNC) and the cycle is paced between two SYNCs (see _run): its
+            # RxPDOs only have to land before the next one. Without a kernel
+            # timer (python-can's virtual bus, no can-bcm) the cycle sends
+            # SYNC itself: a second thread would only add its own jitter.
             self.sync = SyncProducer(self.bus, sync.overflow)
             self._start_sync()
         self._axes = axes
@@ -531,8 +532,12 @@ class Driver:
 
     def _start_sync(self) -> None:
         sync, producer = self.config.sync, self.sync
-        producer.start(sync.interval_ms / 1000.0)
         same_period = sync.interval_ms == sync.update_ms
+        if same_period and not sync.kernel_timer:
+            producer.stop()
+            self._sync_paced, self._sync_in_cycle = False, True
+            return
+        producer.start(sync.interval_ms / 1000.0)
         self._sync_paced = same_period and producer.kernel_timed
         self._sync_in_cycle = same_period and not producer.kernel_timed
         if self._sync_in_cycle:
