@@ -250,7 +250,7 @@ def plan_config(config: DriverConfig) -> "Mapping[str, NodePlan]":
             od = canopen.import_od(n.eds_file, n.node_id)
         except Exception as e:  # canopen raises many kinds on a bad file
             raise ConfigError(config.source, "nodes/%s/eds_file" % n.key, "cannot read %s: %s" % (n.eds_file, e)) from None
-        plans[n.name] = plan_node(n, od, config.sync, config.source)
+        plans[n.name] = plan_node(n, od, config.sync, config.source, config.heartbeat)
     return plans
 
 

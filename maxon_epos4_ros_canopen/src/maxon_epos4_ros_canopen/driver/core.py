@@ -46,16 +46,18 @@ from ..units import object_variable_name
 from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
                    initial_snapshot)
 from .bus import HeartbeatProducer, SyncProducer, open_bus
-from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, mode_of,
+from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, VELOCITY_ACTUAL, mode_of,
                     supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
-from .plan import (DRIVER_OWNED, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
+from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
 NMT_START, NMT_STOP, NMT_RESET_NODE = 0x01, 0x02, 0x81
 _PDO_MISSING_CYCLES = 50
+QUICK_STOP_DECELERATION = ObjectKey(0x6085)
+_STANDSTILL = 2  # |0x606C| at or below this is standing still
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 CycleCallback = Callable[["Driver"], None]
 
@@ -217,7 +219,7 @@ class Driver:
             except Exception as e:  # canopen raises many kinds on a bad file
                 raise ConfigError(config.source, "nodes/%s/eds_file" % n.key,
                                   "cannot read %s: %s" % (n.eds_file, e)) from None
-            plan = plan_node(n, od, config.sync, config.source)
+            plan = plan_node(n, od, config.sync, config.source, config.heartbeat)
             try:
                 for m in enabled_maps(plan.rx):
                     RxPdo(od, m)
@@ -493,7 +495,10 @@ class Driver:
         network, self.network = self.network, None
         self._sdo = MappingProxyType({})
         if network is not None and network.notifier is not None:
-            network.notifier.stop(1.0)
+            # the notifier's reader wakes every NOTIFIER_CYCLE: wait longer
+            # than that, or shutting the bus below it pulls its socket away
+            # mid-read ("Bad file descriptor")
+            network.notifier.stop(network.NOTIFIER_CYCLE + 1.0)
         bus, self.bus = self.bus, None
         if bus is not None and self._external_bus is None:
             bus.shutdown()
@@ -982,6 +987,8 @@ class Driver:
         if self.sync is not None:
             self._start_sync()
         self.bus_error = None
+        notes = []
+        rehome = []
         for name in names:
             a = self._snapshot.axes[name]
             if a.rebooted or a.nmt_state in ("STOPPED", "PRE-OPERATIONAL", "INITIALISING", "LOST"):
@@ -993,10 +1000,30 @@ class Driver:
                     return fail("recover: %s" % e)
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
                 self._post(_Attach(name, binding))
+                if a.rebooted:
+                    # an incremental encoder restarts at 0: the position
+                    # reference is gone, homing (if configured) finds it again
+                    method = int(self._upload(name, HOMING_METHOD)) if HOMING_METHOD.index in self._nodes[name].od else 0
+                    if method:
+                        rehome.append((name, method))
+                    else:
+                        notes.append("%s rebooted: its position reference is lost (no homing method configured)"
+                                     % name)
         self._post(*[_ClearError(name, self._position(name)) for name in names])
         err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
         if err:
             return fail("recover: " + err)
+        self._wait(lambda s: True, 1.0, self._post(_Ready(tuple(names), True)))
+        for name, method in rehome:
+            mode = self._snapshot.axes[name].active_mode
+            r = self._home(name, method)
+            if not r:
+                return fail("recover: %s rebooted and lost its position reference; %s" % (name, r.message))
+            notes.append("%s rebooted: homed again (method %d)" % (name, method))
+            if mode is not None:
+                r = self._switch(name, mode, force=True)
+                if not r:
+                    return fail("recover: " + r.message)
         for name in names:
             a = self._snapshot.axes[name]
             if a.active_mode is not None and a.mode_display != a.active_mode:
@@ -1004,7 +1031,7 @@ class Driver:
                 if not r:
                     return fail("recover: " + r.message)
         self._wait_cycles(2)
-        return ok("recovered")
+        return ok("recovered" + ("; " + "; ".join(notes) if notes else ""))
 
     def shutdown(self) -> Result:
         """Quick stop and disable every drive, stop SYNC, NMT stop."""
@@ -1028,11 +1055,14 @@ class Driver:
             err = self._go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False)
             if err:
                 problems.append(err)
+            # the power goes off only once the quick stop ramp is done
+            problems.extend(self._wait_standstill(enabled))
             snap = self._snapshot.axes
             live = [n for n in names if snap[n].attached and snap[n].state not in (State.FAULT, None)]
             err = self._go(live, State.SWITCH_ON_DISABLED, stop_on_error=False)
             if err:
                 problems.append(err)
+            self._release_heartbeat_consumers(live)
         self._stop_cycle()
         # The cycle thread is gone: the axes are this thread's again.
         for axis in self._axes:
@@ -1055,6 +1085,50 @@ class Driver:
         self._close()
         self.initialized = False
         return problems
+
+    def _wait_standstill(self, names: Sequence[str]) -> List[str]:
+        """Wait until each drive has stopped on its quick stop ramp (or left
+        Quick Stop Active by itself at its end), at most the ramp's time from
+        the velocity and 0x6085 (quick stop deceleration) plus a margin."""
+        problems = []
+        deadline = time.monotonic()
+        for name in names:
+            try:
+                velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
+                deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
+                    QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
+            except Exception as e:  # a drive that does not answer must not hold up the others
+                problems.append("%s: quick stop not confirmed (%s)" % (name, e))
+                continue
+            ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
+            deadline = max(deadline, time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout))
+        for name in names:
+            while True:
+                a = self._snapshot.axes[name]
+                if a.state != State.QUICK_STOP_ACTIVE:
+                    break
+                try:
+                    if abs(int(self._upload(name, VELOCITY_ACTUAL))) <= _STANDSTILL:
+                        break
+                except Exception:
+                    break
+                if time.monotonic() > deadline:
+                    problems.append("%s still moving when the quick stop time ran out" % name)
+                    break
+                time.sleep(0.02)
+        return problems
+
+    def _release_heartbeat_consumers(self, names: Sequence[str]) -> None:
+        """A drive disabled by shutdown need not watch the master any more:
+        stop its heartbeat consumer so the master's heartbeat ending now is
+        no fault (best effort)."""
+        for name in names:
+            plan = self._nodes[name].plan
+            if any(w.key == HEARTBEAT_CONSUMER_1 for w in plan.writes):
+                try:
+                    self._download(name, HEARTBEAT_CONSUMER_1.index, HEARTBEAT_CONSUMER_1.subindex, bytes(4))
+                except Exception as e:
+                    log.warning("%s: heartbeat consumer left on: %s", name, e)
 
     def close(self) -> None:
         """Leave the drives safe and release the bus (node exit); never raises.

@@ -20,7 +20,7 @@ from typing import Dict, Iterable, List, Optional, Sequence, Tuple
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary
 from canopen.objectdictionary import datatypes as dt
 
-from ..config import ConfigError, NodeConfig, SyncConfig
+from ..config import ConfigError, HeartbeatConfig, NodeConfig, SyncConfig
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, encode_value,
                        find_variable, is_writable)
 from .modes import (CONTROLWORD, MODES, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
@@ -262,8 +262,29 @@ def _timing(maps: List[MapPlan], sync: SyncConfig, rx: bool) -> List[MapPlan]:
     return out
 
 
-def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: str) -> NodePlan:
-    """Everything init will write to this node; ConfigError on any problem."""
+HEARTBEAT_CONSUMER_1 = ObjectKey(0x1016, 1)
+# Heartbeats of the master the drive may miss before it reacts (0x6007):
+# one late frame is no master loss, three missing frames are.
+MISSED_HEARTBEATS = 3
+
+
+def heartbeat_consumer(master: Optional[HeartbeatConfig]) -> Optional[Tuple[int, int]]:
+    """(master node-ID, timeout ms) the drives watch, from the bus layer's
+    ``heartbeat``; None when the master sends no heartbeat a drive could
+    watch (none configured, or not on a heartbeat COB-ID 0x701..0x77F)."""
+    if master is None or master.extended or not 0x701 <= master.can_id <= 0x77F or master.rate <= 0:
+        return None
+    period_ms = 1000.0 / master.rate
+    return master.can_id - 0x700, max(1, min(0xFFFF, int(round(MISSED_HEARTBEATS * period_ms))))
+
+
+def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: str,
+              master_heartbeat: Optional[HeartbeatConfig] = None) -> NodePlan:
+    """Everything init will write to this node; ConfigError on any problem.
+
+    With the master's heartbeat given, the drive's heartbeat consumer
+    0x1016sub1 is set to watch it (a drive whose master dies stops by its
+    own abort connection reaction, 0x6007); ``dcf_overlay`` "1016sub1" wins."""
     prefix = "nodes/%s/" % cfg.key
 
     def fail(key: str, problem: str) -> ConfigError:
@@ -287,6 +308,13 @@ def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: s
         except (ValueError, TypeError, Exception) as e:  # canopen raises struct/Object errors
             raise fail("eds_file", "%s: ParameterValue of %s cannot be encoded: %s" % (cfg.eds_file, key, e)) from None
         writes[key] = SdoWrite(key, data, "%s = %s (DCF)" % (key, var.value))
+    consumer = heartbeat_consumer(master_heartbeat)
+    if consumer is not None and HEARTBEAT_CONSUMER_1.index in od:
+        var = find_variable(od, HEARTBEAT_CONSUMER_1)
+        value = consumer[0] << 16 | consumer[1]
+        writes[HEARTBEAT_CONSUMER_1] = SdoWrite(HEARTBEAT_CONSUMER_1, var.encode_raw(value), "%s = 0x%08X (watch the "
+                                                "master's heartbeat, node %d, %d ms)" % (HEARTBEAT_CONSUMER_1, value,
+                                                                                          consumer[0], consumer[1]))
     for key, text, written in cfg.dcf_overlay:
         try:
             var = find_variable(od, key)
