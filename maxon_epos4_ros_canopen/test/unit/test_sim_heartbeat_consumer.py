@@ -42,6 +42,22 @@ def _is_emcy(msg, node_id=1):
     return msg.arbitration_id == 0x80 + node_id and bytes(msg.data) == HEARTBEAT_LOST
 
 
+def _lose_master_while_turning(rig, settings):
+    """Node 1 turning at 1000 rpm and watching the master, ``settings``
+    ({(index, sub): value}) written first; then the master's heartbeat stops
+    and the EMCY must come. Returns the node."""
+    node = rig.remote(1)
+    for (index, sub), value in settings.items():
+        (node.sdo[index][sub] if sub else node.sdo[index]).raw = value
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.drain()
+    master.stop()
+    assert rig.expect(_is_emcy)
+    return node
+
+
 def test_the_drive_has_two_consumer_entries_off_by_default(rig):
     node = rig.remote(1)
     assert node.sdo[0x1016][0].raw == 2
@@ -105,15 +121,8 @@ def test_supervision_starts_with_the_first_heartbeat(rig):
 
 
 def test_option_1_is_a_fault_with_the_fault_reaction(rig):
-    node = rig.remote(1)
-    node.sdo[0x6007].raw = 1
-    node.sdo[0x605E].raw = 1  # fault reaction: profile deceleration
-    _watch_master(node)
-    master = Master(rig)
-    spin_up(node, rig)
-    rig.drain()
-    master.stop()
-    assert rig.expect(_is_emcy)
+    # fault reaction 1: profile deceleration
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 1, (0x605E, 0): 1})
     assert rig.wait(lambda: node.sdo[0x6041].raw == 0x0218)  # fault
     assert abs(node.sdo[0x606C].raw) < 5
     node.sdo[0x6040].raw = 0x0000
@@ -122,28 +131,13 @@ def test_option_1_is_a_fault_with_the_fault_reaction(rig):
 
 
 def test_option_2_disables_voltage_at_once(rig):
-    node = rig.remote(1)
-    node.sdo[0x6007].raw = 2
-    _watch_master(node)
-    master = Master(rig)
-    spin_up(node, rig)
-    rig.drain()
-    master.stop()
-    assert rig.expect(_is_emcy)
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 2})
     assert rig.wait(lambda: node.sdo[0x6041].raw == 0x0250)
     assert node.sdo[0x606C].raw > 500  # power stage off: the motor coasts
 
 
 def test_option_0_only_reports_and_supervision_rearms(rig):
-    node = rig.remote(1)
-    node.sdo[0x6007].raw = 0
-    node.sdo[0x1029][1].raw = 1
-    _watch_master(node)
-    master = Master(rig)
-    spin_up(node, rig)
-    rig.drain()
-    master.stop()
-    assert rig.expect(_is_emcy)
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 0, (0x1029, 1): 1})
     assert node.sdo[0x6041].raw & 0x6F == 0x27
     assert node.sdo[0x606C].raw > 950  # still turning: no action
     # a fault reset edge clears the error that needed no FAULT state

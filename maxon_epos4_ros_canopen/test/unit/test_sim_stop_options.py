@@ -55,15 +55,6 @@ def test_quick_stop_ramps_with_the_option_codes_deceleration(rig, option, decel,
     assert rig.wait(lambda: node.sdo[0x6041].raw == final)
 
 
-def test_quick_stop_option_0_switches_off_at_once(rig):
-    node = _moving(rig)
-    node.sdo[0x605A].raw = 0
-    spin_up(node, rig)
-    node.sdo[0x6040].raw = 0x0002
-    assert node.sdo[0x6041].raw == SWITCH_ON_DISABLED  # power off, the motor coasts
-    assert node.sdo[0x606C].raw > 500
-
-
 def test_disable_operation_option_1_slows_down_then_switches_off(rig):
     node = _moving(rig)
     assert node.sdo[0x605C].raw == 1  # the EPOS4's default
@@ -91,6 +82,7 @@ def test_shutdown_option_1_slows_down_to_ready_to_switch_on(rig):
 
 
 @pytest.mark.parametrize("index, controlword, final", [
+    (0x605A, 0x0002, SWITCH_ON_DISABLED),
     (0x605B, 0x0006, READY_TO_SWITCH_ON),  # 0 is the EPOS4's default for shutdown
     (0x605C, 0x0007, SWITCHED_ON),
 ])
