@@ -33,9 +33,9 @@ WINDOW_OFF = 0xFFFFFFFF
 MAX_STEP = 0.02  # s
 _EMCY = struct.Struct("<HB5s")
 
-# Option codes the EPOS4 accepts (the values its firmware specification
-# lists for each object; CiA 402 defines more, e.g. 3/4 "slow down on current
-# or voltage limit" for 0x605A, which the EPOS4 does not implement).
+# Option codes the simulated EPOS4 accepts: CiA 402's values that the EPOS4
+# implements (for 0x605A not 3/4/7/8, "slow down on current or voltage
+# limit"); docs/virtual_epos4.md says which ranges are confirmed where.
 OPTION_CODES: Dict[int, Tuple[int, ...]] = {
     0x6007: (0, 1, 2, 3),  # abort connection: none, fault, disable voltage, quick stop
     0x605A: (0, 1, 2, 5, 6),  # quick stop
