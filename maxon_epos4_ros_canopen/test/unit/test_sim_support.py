@@ -3,6 +3,7 @@
 (No tests here; the name only keeps the file among the simulator's tests.)"""
 import itertools
 import os
+import struct
 import sys
 import time
 from typing import Callable, List, Optional
@@ -97,3 +98,57 @@ def enable(node: canopen.RemoteNode, mode: int) -> None:
     for cw in (0x0006, 0x0007, 0x000F):
         node.sdo[0x6040].raw = cw
     assert node.sdo[0x6041].raw & 0x6F == 0x27
+
+
+INC_PER_S_PER_RPM = 3200 / 60.0  # the project's DCFs: 3200 increments per turn
+
+
+class RampRecorder:
+    """Position and velocity of one node from its TxPDO3 (0x6064, 0x30D3 sub 1)
+    at every SYNC the recorder sends: the slow-down a drive performs, seen
+    from the bus, without timing anything (the deceleration follows from
+    velocity and distance alone)."""
+
+    def __init__(self, rig: Rig, node_id: int = 1, sync_period: float = 0.01):
+        self.rig, self.cob = rig, 0x380 + node_id
+        rig.send(0x000, bytes([0x01, node_id]))  # operational: PDOs flow
+        self.task = rig.raw.send_periodic(can.Message(arbitration_id=0x080, data=b"",
+                                                      is_extended_id=False), sync_period)
+        self.samples: List = []
+        self.frames: List[can.Message] = []  # every frame seen while recording
+
+    def stop(self) -> None:
+        self.task.stop()
+
+    def record_until_rest(self, timeout: float = 20.0) -> List:
+        """(position, velocity) samples from now until the velocity stays 0."""
+        self.samples, self.frames = [], []
+        rest = 0
+        end = time.monotonic() + timeout
+        while time.monotonic() < end and rest < 5:
+            msg = self.rig.raw.recv(timeout=0.1)
+            if msg is not None:
+                self.frames.append(msg)
+            if msg is None or msg.arbitration_id != self.cob or len(msg.data) != 8:
+                continue
+            position, velocity = struct.unpack("<ii", bytes(msg.data))
+            self.samples.append((position, velocity))
+            rest = rest + 1 if velocity == 0 else 0
+        return self.samples
+
+    def deceleration(self, high: float = 0.8, low: float = 0.2) -> float:
+        """rpm/s between the first sample under ``high`` x the start velocity
+        and the last one above ``low`` x it: a = (v1^2 - v2^2) / (2 d)."""
+        v0 = max(abs(v) for _, v in self.samples)
+        window = [(p, v) for p, v in self.samples if low * v0 <= abs(v) <= high * v0]
+        assert len(window) >= 2, "too few samples on the ramp: %s" % self.samples
+        (p1, v1), (p2, v2) = window[0], window[-1]
+        distance = abs(p2 - p1) / INC_PER_S_PER_RPM  # rpm x s
+        return (v1 * v1 - v2 * v2) / (2.0 * distance)
+
+
+def spin_up(node: canopen.RemoteNode, rig: Rig, rpm: int = 1000) -> None:
+    """Profile velocity mode at ``rpm`` (0x6084 and 0x6085 left as the test set them)."""
+    enable(node, 3)
+    node.sdo[0x60FF].raw = rpm
+    assert rig.wait(lambda: node.sdo[0x606C].raw > 0.95 * rpm)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import struct
-from typing import Any, Callable, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import canopen
 
@@ -18,7 +18,8 @@ from .. import cia402
 from .. import epos4_errors
 from ..cia402 import OperationMode, State
 from . import motor as mm
-from .objects import (ABORT_STORE, ABORT_VALUE_RANGE, Key, ObjectStore, SdoAbort)
+from .objects import (ABORT_PARAMETER_INCOMPATIBLE, ABORT_STORE, ABORT_VALUE_RANGE, Key,
+                      ObjectStore, SdoAbort)
 from .pdo import COB_INVALID, Pdo, PdoSet
 from .sdo import SdoServer
 
@@ -31,6 +32,29 @@ LOAD_SIGNATURE = 0x64616F6C  # "load"
 WINDOW_OFF = 0xFFFFFFFF
 MAX_STEP = 0.02  # s
 _EMCY = struct.Struct("<HB5s")
+
+# Option codes the simulated EPOS4 accepts: CiA 402's values that the EPOS4
+# implements (for 0x605A not 3/4/7/8, "slow down on current or voltage
+# limit"); docs/virtual_epos4.md says which ranges are confirmed where.
+OPTION_CODES: Dict[int, Tuple[int, ...]] = {
+    0x6007: (0, 1, 2, 3),  # abort connection: none, fault, disable voltage, quick stop
+    0x605A: (0, 1, 2, 5, 6),  # quick stop
+    0x605B: (0, 1),  # shutdown: disable at once / slow down with 0x6084 first
+    0x605C: (0, 1),  # disable operation: same choices
+    0x605E: (0, 1, 2),  # fault reaction: coast / 0x6084 / 0x6085
+}
+ABORT_CONNECTION_NONE, ABORT_CONNECTION_FAULT, ABORT_CONNECTION_DISABLE_VOLTAGE, \
+    ABORT_CONNECTION_QUICK_STOP = 0, 1, 2, 3
+# 0x1029 sub 1, reaction of the NMT state to a communication error (CiA 301).
+COMM_ERROR_PRE_OPERATIONAL, COMM_ERROR_NO_CHANGE, COMM_ERROR_STOPPED = 0, 1, 2
+
+
+def consumer_entry(value: int) -> Tuple[int, float]:
+    """0x1016 sub-index value -> (watched node id, timeout in s); (0, 0) = unused."""
+    node_id, ms = (value >> 16) & 0xFF, value & 0xFFFF
+    if not 1 <= node_id <= 127 or ms == 0:
+        return 0, 0.0
+    return node_id, ms / 1000.0
 
 
 def _sign(x: float) -> float:
@@ -86,6 +110,7 @@ class VirtualEpos4:
         self.mode = 0
         self.referenced = False
         self.fault_code = 0
+        self.stopping: Optional[State] = None  # target of a shutdown/disable operation slow-down
         self._reset_motion()
         self.state = State.SWITCH_ON_DISABLED  # transitions 0 and 1: self-test done
         self._set_mode(self.store.get(0x6060, 0, 0))
@@ -98,6 +123,7 @@ class VirtualEpos4:
         self.sync_cob = self.store.get(0x1005, 0, 0x80) & 0x7FF
         self.nmt_state = NMT_PRE_OPERATIONAL
         self.guard_toggle = 0
+        self._load_consumers()
         self._routes_changed()
         self._send(0x700 + self.node_id, b"\x00")  # boot-up
         self._schedule_heartbeat(now)
@@ -125,6 +151,45 @@ class VirtualEpos4:
         elif command == 0x82:
             self._reset_communication(now)
 
+    # ---------------------------------------------------- heartbeat consumer
+    def _load_consumers(self) -> None:
+        """(Re)read 0x1016: every entry starts unarmed (CiA 301: supervision
+        begins with the first heartbeat received from the watched node)."""
+        self.consumers: Dict[int, float] = {}  # watched node id -> timeout (s)
+        self.heartbeat_seen: Dict[int, float] = {}  # armed entries: node id -> last heartbeat
+        for sub in range(1, 128):
+            if (0x1016, sub) not in self.store:
+                break
+            node_id, timeout = consumer_entry(self.store.get(0x1016, sub, 0))
+            if node_id and node_id != self.node_id:
+                self.consumers[node_id] = timeout
+
+    def _check_consumers(self, now: float) -> None:
+        for node_id, last in list(self.heartbeat_seen.items()):
+            if now - last > self.consumers[node_id]:
+                del self.heartbeat_seen[node_id]  # unarmed until the next heartbeat
+                self._heartbeat_lost(node_id, now)
+
+    def _heartbeat_lost(self, node_id: int, now: float) -> None:
+        """Heartbeat consumer timeout: EMCY 0x8130, then the abort connection
+        option code 0x6007 (the fault reaction where the DCF lacks 0x6007),
+        then the NMT reaction of 0x1029 sub 1."""
+        option = self.store.get(0x6007, 0, None)
+        if option is None or option == ABORT_CONNECTION_FAULT:
+            self.raise_fault(epos4_errors.CAN_HEARTBEAT, now)
+        else:
+            self._record_error(epos4_errors.CAN_HEARTBEAT)
+            if option == ABORT_CONNECTION_DISABLE_VOLTAGE:
+                self._device_command(cia402.CW_DISABLE_VOLTAGE, now)
+            elif option == ABORT_CONNECTION_QUICK_STOP:
+                self._device_command(cia402.CW_QUICK_STOP, now)
+        behaviour = self.store.get(0x1029, 1, COMM_ERROR_PRE_OPERATIONAL)
+        if behaviour == COMM_ERROR_PRE_OPERATIONAL and self.nmt_state == NMT_OPERATIONAL:
+            self.nmt_state = NMT_PRE_OPERATIONAL
+        elif behaviour == COMM_ERROR_STOPPED:
+            self.nmt_state = NMT_STOPPED
+        self._publish(now)
+
     # -------------------------------------------------------------- routing
     def _routes_changed(self) -> None:
         if self.on_routes_changed is not None:
@@ -133,6 +198,7 @@ class VirtualEpos4:
     def cob_ids(self) -> List[int]:
         """COB-IDs this node listens to besides NMT and SYNC."""
         ids = [0x600 + self.node_id, 0x700 + self.node_id]
+        ids += [0x700 + n for n in self.consumers]
         ids += [p.cob_id for p in self.pdos.rpdos + self.pdos.tpdos if p.valid]
         return ids
 
@@ -150,6 +216,10 @@ class VirtualEpos4:
         if cob_id == 0x600 + self.node_id:
             if self.nmt_state != NMT_STOPPED and not remote:
                 self.sdo.on_request(data, now)
+            return
+        if cob_id - 0x700 in self.consumers and not remote:
+            if data:  # a heartbeat (or boot-up) of a watched node arms/feeds its entry
+                self.heartbeat_seen[cob_id - 0x700] = now
             return
         if cob_id == 0x700 + self.node_id:
             if remote:  # node guarding
@@ -250,12 +320,27 @@ class VirtualEpos4:
             self.pdos.check_write(self.store, key, value)
         elif index == 0x6060 and value not in SUPPORTED_MODES:
             raise SdoAbort(ABORT_VALUE_RANGE, "mode %d" % value)
+        elif index in OPTION_CODES and value not in OPTION_CODES[index]:
+            raise SdoAbort(ABORT_VALUE_RANGE, "option code %d of 0x%04X" % (value, index))
+        elif index == 0x1016 and sub >= 1:
+            self._check_consumer_entry(sub, value)
         elif index == 0x1003 and value != 0:
             raise SdoAbort(ABORT_VALUE_RANGE, "only 0 clears the error history")
         elif index == 0x1010 and sub >= 1 and value != SAVE_SIGNATURE:
             raise SdoAbort(ABORT_STORE, "signature")
         elif index == 0x1011 and sub >= 1 and value != LOAD_SIGNATURE:
             raise SdoAbort(ABORT_STORE, "signature")
+
+    def _check_consumer_entry(self, sub: int, value: int) -> None:
+        node_id, _ = consumer_entry(value)
+        if not node_id:
+            return
+        for other in range(1, 128):
+            if (0x1016, other) not in self.store:
+                break
+            if other != sub and consumer_entry(self.store.get(0x1016, other, 0))[0] == node_id:
+                # CiA 301: one node may be watched by one entry only
+                raise SdoAbort(ABORT_PARAMETER_INCOMPATIBLE, "node %d already watched" % node_id)
 
     def _after_write(self, key: Key, value: Any) -> None:
         index = key[0]
@@ -269,6 +354,9 @@ class VirtualEpos4:
             self._routes_changed()
         elif index == 0x1017:
             self._schedule_heartbeat(self.t)
+        elif index == 0x1016:
+            self._load_consumers()
+            self._routes_changed()
         elif index == 0x1005:
             self.sync_cob = value & 0x7FF
             self._routes_changed()
@@ -297,17 +385,28 @@ class VirtualEpos4:
     # -------------------------------------------------------------- faults
     def raise_fault(self, code: int, now: float) -> None:
         """An error occurs: EMCY, 0x1001, 0x1003, 0x603F, fault reaction."""
+        self._record_error(code)
+        self.stopping = None
+        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
+            self.state = State.FAULT_REACTION_ACTIVE  # transition 13
+            self.v_dem = self.motor.velocity
+            self.p_dem = self.position
+        self._publish(now)
+
+    def _record_error(self, code: int) -> None:
+        """EMCY, 0x1001, 0x1003, 0x603F; no change of the power state."""
         register = epos4_errors.error_register(code)
         self.fault_code = code
         self.store.set(0x603F, 0, code)
         self.store.set(0x1001, 0, register)
         self._push_history(code)
         self._emcy(code, register)
-        if self.state not in (State.FAULT, State.FAULT_REACTION_ACTIVE):
-            self.state = State.FAULT_REACTION_ACTIVE  # transition 13
-            self.v_dem = self.motor.velocity
-            self.p_dem = self.position
-        self._publish(now)
+
+    def _clear_error(self) -> None:
+        self.fault_code = 0
+        self.store.set(0x603F, 0, 0)
+        self.store.set(0x1001, 0, 0)
+        self._emcy(0x0000, 0)
 
     def _push_history(self, code: int) -> None:
         subs = [s for s in range(1, 256) if (0x1003, s) in self.store]
@@ -327,26 +426,51 @@ class VirtualEpos4:
     # ----------------------------------------------------- device control
     def _on_controlword(self, cw: int, now: float) -> None:
         previous, self.last_cw = self.last_cw, cw
-        old = self.state
-        new = cia402.apply_controlword(old, cw, previous, self.store.get(0x605A, 0, 2))
-        if new != old:
-            if old == State.FAULT:  # fault reset: the errors are gone
-                self.fault_code = 0
-                self.store.set(0x603F, 0, 0)
-                self.store.set(0x1001, 0, 0)
-                self._emcy(0x0000, 0)
-            self.state = new
-            if new == State.OPERATION_ENABLED:
-                self._reset_motion()
-            elif new == State.QUICK_STOP_ACTIVE:
-                self.v_dem = self.motor.velocity
-                self.p_dem = self.position
-                self.target_reached = False  # set again once the quick stop is done
-                if self.store.get(0x605A, 0, 2) == 0:
-                    self.state = State.SWITCH_ON_DISABLED  # option 0: disable drive at once
-        if self.state == State.OPERATION_ENABLED:
+        reset_edge = cw & cia402.CW_FAULT_RESET_BIT and not previous & cia402.CW_FAULT_RESET_BIT
+        if reset_edge and self.fault_code and self.state != State.FAULT:
+            self._clear_error()  # an error that needed no FAULT state (e.g. 0x6007 quick stop)
+        self._device_command(cw, now, previous)
+        if self.state == State.OPERATION_ENABLED and self.stopping is None:
             self._mode_control(cw, previous, now)
         self._publish(now)
+
+    def _device_command(self, cw: int, now: float, previous: Optional[int] = None) -> None:
+        """The power-state part of a controlword (also the drive's own
+        commands, e.g. the abort connection option code)."""
+        if previous is None:
+            previous = self.last_cw
+        old = self.state
+        new = cia402.apply_controlword(old, cw, previous, self.store.get(0x605A, 0, 2))
+        if old == State.OPERATION_ENABLED and self.stopping is not None:
+            if new == State.OPERATION_ENABLED:  # enable operation again: the slow-down is cancelled
+                self.stopping = None
+                self._reset_motion()
+                return
+            if new == self.stopping:
+                return  # the same command again: the slow-down goes on
+        if new == old:
+            return
+        self.stopping = None
+        if old == State.FAULT:  # fault reset: the errors are gone
+            self._clear_error()
+        if old == State.OPERATION_ENABLED and new in (State.READY_TO_SWITCH_ON, State.SWITCHED_ON):
+            # Shutdown (0x605B) / disable operation (0x605C) option 1: slow
+            # down with the profile deceleration, then leave operation enabled.
+            option = self.store.get(0x605B if new == State.READY_TO_SWITCH_ON else 0x605C, 0, 0)
+            if option == 1:
+                self.stopping = new
+                self.v_dem = self.motor.velocity
+                self.p_dem = self.position
+                return
+        self.state = new
+        if new == State.OPERATION_ENABLED:
+            self._reset_motion()
+        elif new == State.QUICK_STOP_ACTIVE:
+            self.v_dem = self.motor.velocity
+            self.p_dem = self.position
+            self.target_reached = False  # set again once the quick stop is done
+            if self.store.get(0x605A, 0, 2) == 0:
+                self.state = State.SWITCH_ON_DISABLED  # option 0: disable drive at once
 
     def _set_mode(self, value: int) -> None:
         if value not in SUPPORTED_MODES or value == self.mode:
@@ -473,6 +597,8 @@ class VirtualEpos4:
             for _, cob, data in due:
                 self._send(cob, data)
         self.sdo.check_timeout(now)
+        if self.heartbeat_seen and not self.is_silent(now):
+            self._check_consumers(now)
         if now >= self.next_heartbeat:
             if not self.heartbeat_stopped and not self.is_silent(now):
                 self._send(0x700 + self.node_id, bytes([self.nmt_state]))
@@ -488,10 +614,14 @@ class VirtualEpos4:
         state = self.state
         m = self.motor
         k = m.inc_per_s_per_rpm
-        if state == State.OPERATION_ENABLED:
+        stopping = state == State.OPERATION_ENABLED and self.stopping is not None
+        if state == State.OPERATION_ENABLED and not stopping:
             mode, pref, vref, iref = self._mode_step(dt, now)
-        elif state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
-            option = self.store.get(0x605A if state == State.QUICK_STOP_ACTIVE else 0x605E, 0, 2)
+        elif stopping or state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
+            if stopping:
+                option = 1  # slow down with the profile deceleration
+            else:
+                option = self.store.get(0x605A if state == State.QUICK_STOP_ACTIVE else 0x605E, 0, 2)
             decel = self.store.get(0x6084 if option in (1, 5) else 0x6085, 0, 10000)
             if option == 0:
                 self.v_dem = 0.0
@@ -501,7 +631,9 @@ class VirtualEpos4:
                 self.p_dem += self.v_dem * k * dt
                 mode, pref, vref, iref = mm.POSITION, self.p_dem - self.offset, self.v_dem, 0.0
             if self.v_dem == 0.0 and abs(m.velocity) < 1.0:
-                if state == State.FAULT_REACTION_ACTIVE:
+                if stopping:
+                    self.state, self.stopping = self.stopping, None  # transition 8 / 5 completes
+                elif state == State.FAULT_REACTION_ACTIVE:
                     self.state = State.FAULT  # transition 14
                 elif option in (0, 1, 2):
                     self.state = State.SWITCH_ON_DISABLED  # transition 12 (automatic)

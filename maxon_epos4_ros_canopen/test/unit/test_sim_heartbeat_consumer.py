@@ -1,0 +1,189 @@
+"""Heartbeat consumer (0x1016) of the virtual EPOS4: a master that goes
+silent makes the drive send EMCY 0x8130 and apply the abort connection
+option code (0x6007) and the NMT error behaviour (0x1029)."""
+import struct
+
+import can
+import pytest
+from canopen.sdo.exceptions import SdoAbortedError
+
+from test_sim_support import NODE1, NODE2, NodeConfig, RampRecorder, Rig, spin_up
+
+MASTER = 0x7F
+TIMEOUT_MS = 100
+HEARTBEAT_LOST = struct.pack("<HB5s", 0x8130, 0x11, bytes(5))  # generic + communication
+QUICK_STOP_DECEL = 2000  # rpm/s
+PROFILE_DECEL = 6000
+
+
+@pytest.fixture
+def rig():
+    r = Rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
+    yield r
+    r.close()
+
+
+class Master:
+    """The master's heartbeat producer: 0x77F [05] every 20 ms until stop()."""
+
+    def __init__(self, rig, node_id=MASTER):
+        msg = can.Message(arbitration_id=0x700 + node_id, data=b"\x05", is_extended_id=False)
+        self.task = rig.raw.send_periodic(msg, 0.02)
+
+    def stop(self):
+        self.task.stop()
+
+
+def _watch_master(node, sub=1):
+    node.sdo[0x1016][sub].raw = (MASTER << 16) | TIMEOUT_MS
+
+
+def _is_emcy(msg, node_id=1):
+    return msg.arbitration_id == 0x80 + node_id and bytes(msg.data) == HEARTBEAT_LOST
+
+
+def _lose_master_while_turning(rig, settings):
+    """Node 1 turning at 1000 rpm and watching the master, ``settings``
+    ({(index, sub): value}) written first; then the master's heartbeat stops
+    and the EMCY must come. Returns the node."""
+    node = rig.remote(1)
+    for (index, sub), value in settings.items():
+        (node.sdo[index][sub] if sub else node.sdo[index]).raw = value
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.drain()
+    master.stop()
+    assert rig.expect(_is_emcy)
+    return node
+
+
+def test_the_drive_has_two_consumer_entries_off_by_default(rig):
+    node = rig.remote(1)
+    assert node.sdo[0x1016][0].raw == 2
+    assert node.sdo[0x1016][1].raw == 0 and node.sdo[0x1016][2].raw == 0
+    assert node.sdo[0x6007].raw == 3  # quick stop, maxon's default
+    assert node.sdo[0x1029][1].raw == 0  # communication error: to pre-operational
+
+
+def test_master_loss_quick_stops_with_the_quick_stop_deceleration(rig):
+    node = rig.remote(1)
+    node.sdo[0x6084].raw = PROFILE_DECEL
+    node.sdo[0x6085].raw = QUICK_STOP_DECEL
+    node.sdo[0x1029][1].raw = 1  # stay operational, so TxPDO3 shows the ramp
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    recorder = RampRecorder(rig)
+    try:
+        rig.drain()
+        master.stop()
+        samples = recorder.record_until_rest()
+    finally:
+        recorder.stop()
+    emcy = [i for i, m in enumerate(recorder.frames) if _is_emcy(m)]
+    assert len(emcy) == 1
+    assert samples[-1][1] == 0
+    assert recorder.deceleration() == pytest.approx(QUICK_STOP_DECEL, rel=0.15)
+    assert node.sdo[0x6041].raw == 0x0617  # quick stop active, target reached (0x605A = 6)
+    assert node.sdo[0x603F].raw == 0x8130
+    assert node.sdo[0x1003][1].raw == 0x8130
+    assert node.sdo[0x1001].raw == 0x11
+
+
+def test_default_error_behaviour_leaves_operational_and_stops_the_motor(rig):
+    node = rig.remote(1)
+    node.sdo[0x1017].raw = 20
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.send(0x000, bytes([0x01, 1]))
+    assert rig.expect(lambda m: m.arbitration_id == 0x701 and m.data[0] == 0x05)
+    master.stop()
+    assert rig.expect(_is_emcy)
+    assert rig.expect(lambda m: m.arbitration_id == 0x701 and m.data[0] == 0x7F)
+    assert rig.wait(lambda: node.sdo[0x606C].raw == 0)
+    assert node.sdo[0x6041].raw & 0x6F == 0x07  # quick stop active
+
+
+def test_supervision_starts_with_the_first_heartbeat(rig):
+    node = rig.remote(1)
+    _watch_master(node)
+    spin_up(node, rig)
+    rig.drain()
+    frames = rig.collect(5 * TIMEOUT_MS / 1000.0)  # no master heartbeat yet: nothing to miss
+    assert not [m for m in frames if _is_emcy(m)]
+    assert node.sdo[0x6041].raw & 0x6F == 0x27
+    master = Master(rig)
+    assert rig.wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x27)
+    master.stop()
+    assert rig.expect(_is_emcy)
+
+
+def test_option_1_is_a_fault_with_the_fault_reaction(rig):
+    # fault reaction 1: profile deceleration
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 1, (0x605E, 0): 1})
+    assert rig.wait(lambda: node.sdo[0x6041].raw == 0x0218)  # fault
+    assert abs(node.sdo[0x606C].raw) < 5
+    node.sdo[0x6040].raw = 0x0000
+    node.sdo[0x6040].raw = 0x0080
+    assert node.sdo[0x6041].raw == 0x0250 and node.sdo[0x603F].raw == 0
+
+
+def test_option_2_disables_voltage_at_once(rig):
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 2})
+    assert rig.wait(lambda: node.sdo[0x6041].raw == 0x0250)
+    assert node.sdo[0x606C].raw > 500  # power stage off: the motor coasts
+
+
+def test_option_0_only_reports_and_supervision_rearms(rig):
+    node = _lose_master_while_turning(rig, {(0x6007, 0): 0, (0x1029, 1): 1})
+    assert node.sdo[0x6041].raw & 0x6F == 0x27
+    assert node.sdo[0x606C].raw > 950  # still turning: no action
+    # a fault reset edge clears the error that needed no FAULT state
+    node.sdo[0x6040].raw = 0x008F
+    node.sdo[0x6040].raw = 0x000F
+    assert node.sdo[0x603F].raw == 0 and node.sdo[0x1001].raw == 0
+    master = Master(rig)  # the master is back: the entry arms again
+    rig.drain()
+    assert rig.expect(lambda m: m.arbitration_id == 0x081 and bytes(m.data) == bytes(8), timeout=0.5) is None
+    master.stop()
+    assert rig.expect(_is_emcy)
+
+
+def test_each_node_watches_only_its_own_entries(rig):
+    node1, node2 = rig.remote(1), rig.remote(2, NODE2)
+    _watch_master(node1, sub=2)
+    master = Master(rig)
+    spin_up(node1, rig)
+    spin_up(node2, rig)
+    rig.drain()
+    master.stop()
+    assert rig.expect(_is_emcy)
+    assert rig.wait(lambda: node1.sdo[0x606C].raw == 0)
+    assert node2.sdo[0x6041].raw & 0x6F == 0x27 and node2.sdo[0x606C].raw > 950
+
+
+def test_a_node_is_watched_by_one_entry_only(rig):
+    node = rig.remote(1)
+    _watch_master(node, sub=1)
+    with pytest.raises(SdoAbortedError) as err:
+        node.sdo[0x1016][2].raw = (MASTER << 16) | 500
+    assert err.value.code == 0x06040043
+    node.sdo[0x1016][2].raw = (0x05 << 16) | 500  # another node is fine
+    node.sdo[0x1016][1].raw = 0  # 0 switches an entry off
+    assert node.sdo[0x1016][1].raw == 0
+
+
+def test_reset_communication_restores_the_dcf_entries(rig):
+    node = rig.remote(1)
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.send(0x000, bytes([0x82, 1]))
+    assert rig.wait(lambda: node.sdo[0x1016][1].raw == 0)
+    rig.drain()
+    master.stop()
+    frames = rig.collect(5 * TIMEOUT_MS / 1000.0)
+    assert not [m for m in frames if _is_emcy(m)]
+    assert node.sdo[0x6041].raw & 0x6F == 0x27
