@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from maxon_epos4_ros_canopen.bus_budget import (bus_budget, check_budget, frame_bits, main, plan_config,
+from maxon_epos4_ros_canopen.driver.budget import (bus_budget, check_budget, frame_bits, main, plan_config,
                                                 wire_bits)
 from maxon_epos4_ros_canopen.config import load_config
 

@@ -36,7 +36,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .. import cia402
 from ..cia402 import State
-from ..bus_budget import check_budget
+from .budget import check_budget
 from ..config import ConfigError, DriverConfig
 from ..limits import JointLimits, saturate
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_value, encode_value,

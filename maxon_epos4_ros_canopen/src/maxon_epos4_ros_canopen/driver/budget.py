@@ -36,8 +36,8 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Mapping, Optional, Sequence, Tuple, Union
 
-from .config import DriverConfig, NodeConfig
-from .driver.plan import CONTROLWORD, MODE_TARGETS, PRODUCER_HEARTBEAT, RX_REQUIRED, MapPlan, NodePlan
+from ..config import DriverConfig, NodeConfig
+from .plan import CONTROLWORD, MODE_TARGETS, PRODUCER_HEARTBEAT, RX_REQUIRED, MapPlan, NodePlan
 
 DEFAULT_BITRATE = 1_000_000
 INTERMISSION_BITS = 3
@@ -241,8 +241,8 @@ def plan_config(config: DriverConfig) -> "Mapping[str, NodePlan]":
     """Every node's plan, as the driver makes it at start (no bus needed)."""
     import canopen
 
-    from .config import ConfigError
-    from .driver.plan import plan_node
+    from ..config import ConfigError
+    from .plan import plan_node
 
     plans = {}
     for n in config.nodes:
@@ -260,7 +260,7 @@ def main(argv: Optional[Sequence[str]] = None, resolver: Optional[Callable[[str]
     most 80 %, 1 above, 2 on a configuration error."""
     import argparse
 
-    from .config import ConfigError, load_config, load_yaml_files
+    from ..config import ConfigError, load_config, load_yaml_files
 
     ap = argparse.ArgumentParser(prog="bus_budget", description="CAN bus load of a driver configuration "
                                  "(frames and bits per SYNC period, worst-case bit stuffing).")
