@@ -156,6 +156,7 @@ class VirtualEpos4:
         """(Re)read 0x1016: every entry starts unarmed (CiA 301: supervision
         begins with the first heartbeat received from the watched node)."""
         self.consumers: Dict[int, float] = {}  # watched node id -> timeout (s)
+        self.supervision_t = getattr(self, "supervision_t", 0.0)  # slowed time, see tick
         self.heartbeat_seen: Dict[int, float] = {}  # armed entries: node id -> last heartbeat
         for sub in range(1, 128):
             if (0x1016, sub) not in self.store:
@@ -166,7 +167,7 @@ class VirtualEpos4:
 
     def _check_consumers(self, now: float) -> None:
         for node_id, last in list(self.heartbeat_seen.items()):
-            if now - last > self.consumers[node_id]:
+            if self.supervision_t - last > self.consumers[node_id]:
                 del self.heartbeat_seen[node_id]  # unarmed until the next heartbeat
                 self._heartbeat_lost(node_id, now)
 
@@ -219,7 +220,7 @@ class VirtualEpos4:
             return
         if cob_id - 0x700 in self.consumers and not remote:
             if data:  # a heartbeat (or boot-up) of a watched node arms/feeds its entry
-                self.heartbeat_seen[cob_id - 0x700] = now
+                self.heartbeat_seen[cob_id - 0x700] = self.supervision_t
             return
         if cob_id == 0x700 + self.node_id:
             if remote:  # node guarding
@@ -591,6 +592,10 @@ class VirtualEpos4:
         # A starved loop must not integrate one huge step (the position loop
         # would overshoot): the simulated time then runs slower than the clock.
         dt = min(dt, MAX_STEP)
+        # The heartbeat consumer runs on the same slowed time: a real drive
+        # never stalls, so a stall of this process (a loaded host, user-mode
+        # Linux) must not count as silence of the master.
+        self.supervision_t += dt
         if self._delayed:
             due = [d for d in self._delayed if d[0] <= now]
             self._delayed = [d for d in self._delayed if d[0] > now]
