@@ -44,6 +44,7 @@ __all__ = [
     "SWITCHING_STATES",
     "DEFAULT_UNITS",
     "PDO_LAYOUTS",
+    "HALT_MODES",
 ]
 
 Resolver = Callable[[str], str]
@@ -76,12 +77,17 @@ _UNIT_KEYS = tuple(DEFAULT_UNITS)
 # Node layer ``pdo_layout``: the DCF's own PDO mapping (default) or the
 # driver's compact one (see driver/plan.py and docs/driver.md).
 PDO_LAYOUTS = ("dcf", "compact")
+# Node layer ``halt_mode``: what driver/halt does. ``quick_stop`` as
+# ros_canopen's Motor402 (Operation Enabled -> Quick Stop Active: the drive
+# ramps down on 0x6085, then acts on 0x605A); ``halt_bit``: controlword
+# bit 8, the drive decelerates on its profile and stays Operation Enabled.
+HALT_MODES = ("quick_stop", "halt_bit")
 
 _BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator"}
 _SYNC_KEYS = {"interval_ms", "update_ms", "overflow", "kernel_timer"}
 _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
-              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes"}
+              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes", "halt_mode"}
 _TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names"}
 _CONTROLLER_KEYS = {"type", "joint", "joints", "publish_rate", "required_drive_mode", "constraints"}
 _SOCKETCAN_PLUGIN = "can::SocketCANInterface"
@@ -154,6 +160,7 @@ class NodeConfig:
     # ``modes`` need (driver/plan.py). modes: the node's ``modes`` key, else
     # the required_drive_mode of the controllers naming this joint.
     pdo_layout: str = "dcf"
+    halt_mode: str = "quick_stop"
     modes: Tuple[int, ...] = ()
 
 
@@ -515,6 +522,9 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
         if pdo_layout not in PDO_LAYOUTS:
             raise r.fail(prefix + "pdo_layout", "%r is not a layout; use one of %s" % (pdo_layout, ", ".join(PDO_LAYOUTS)))
         modes = _modes(r, node.get("modes"), prefix + "modes")
+        halt_mode = r.string(node.get("halt_mode", HALT_MODES[0]), prefix + "halt_mode")
+        if halt_mode not in HALT_MODES:
+            raise r.fail(prefix + "halt_mode", "%r is not a halt mode; use one of %s" % (halt_mode, ", ".join(HALT_MODES)))
         extra = {k: v for k, v in node.items() if k not in _NODE_KEYS}
         if "motor_layer" in node:
             extra["motor_layer"] = node["motor_layer"]
@@ -523,7 +533,8 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
             key=prefix.split("/")[1] if prefix.startswith("nodes/") else name,
             node_id=node_id, name=name, eds_file=path, eds_pkg=pkg, dcf_overlay=overlay,
             switching_state=switching, publish=publish, motor_allocator=allocator,
-            extra=MappingProxyType(extra), pdo_layout=pdo_layout, modes=modes, **units))
+            extra=MappingProxyType(extra), pdo_layout=pdo_layout, modes=modes, halt_mode=halt_mode,
+            **units))
     if not nodes:
         raise r.fail("nodes", "no node configured")
     seen_ids: Dict[int, str] = {}

@@ -253,7 +253,7 @@ def test_07_non_finite_commands_do_not_reach_the_drive(session):
 
 def test_08_halt_refuses_commands_recover_resumes(session):
     assert session.call("/maxon/driver/halt")["success"]
-    assert int(get_value(session, "6040"), 0) & 0x0100
+    assert int(get_value(session, "6040"), 0) & 0x000F == 0x0002  # quick stop, as ros_canopen
     before = get_value(session, "607A")
     session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "5000")
     time.sleep(0.5)

@@ -224,8 +224,26 @@ def test_commands_are_saturated_to_the_joint_limits(rig):
     assert until(lambda: rig.read(0x60FF) == -20)
 
 
-def test_halt_keeps_power_and_recover_does_not_jump(rig):
+def test_halt_is_a_quick_stop_by_default_and_recover_does_not_jump(rig):
     d = ppm_ready(rig)
+    assert d.set_command(J1, "position", 400000).success
+    assert until(lambda: abs(rig.read(0x606C)) > 100)
+    r = d.halt()
+    assert r.success and "quick stop" in r.message, r.message
+    assert rig.state() == State.QUICK_STOP_ACTIVE  # 0x605A = 6: ramps down, stays there, powered
+    assert until(lambda: abs(rig.read(0x606C)) < 2)
+    stopped = rig.read(0x6064)
+    assert stopped < 400000
+    r = d.set_command(J1, "position", 0)
+    assert not r.success and "halted" in r.message
+    assert d.recover().success
+    assert rig.state() == State.OPERATION_ENABLED
+    assert until(lambda: rig.read(0x607A) == rig.read(0x6064))  # not the stale 400000
+    assert abs(rig.read(0x607A) - stopped) < 500
+
+
+def test_halt_bit_keeps_power_and_recover_does_not_jump(rig):
+    d = ppm_ready(rig, defaults={"halt_mode": "halt_bit"})
     assert d.set_command(J1, "position", 200000).success
     assert until(lambda: d.joints[J1].position > 2000)
     assert d.halt().success

@@ -952,13 +952,30 @@ class Driver:
 
     # ================================================ halt/recover/shutdown
     def halt(self) -> Result:
-        """Stop motion, keep the drives powered: the halt bit in the profile
-        modes, the last commanded target in CSP, zero in CSV/CST."""
+        """Stop motion. Per node's ``halt_mode``: ``quick_stop`` (default, as
+        ros_canopen) brings an enabled drive to Quick Stop Active, where it
+        ramps down on its quick stop deceleration; ``halt_bit`` keeps it
+        Operation Enabled and stops in place (halt bit in the profile modes,
+        the last commanded target in CSP, zero in CSV/CST). Either way the
+        joint takes no command until recover."""
         if not self.initialized:
             return fail("driver not initialized: call init")
-        after = self._post(_StopInPlace(tuple(self._nodes)))
+        names = tuple(self._nodes)
+        snap = self._snapshot.axes
+        quick = tuple(n for n in names if self._nodes[n].cfg.halt_mode == "quick_stop"
+                      and snap[n].held_state == State.OPERATION_ENABLED and not snap[n].error)
+        after = self._post(_StopInPlace(names))
+        if quick:
+            after = self._post(_StateRequest(quick, State.QUICK_STOP_ACTIVE))
+
+            def stopping(s: DriverSnapshot) -> bool:
+                return all(s.axes[n].error or (s.axes[n].target_state is None and s.axes[n].held_state in (
+                    State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)) for n in quick)
+            if not self._wait(stopping, self.state_timeout, after):
+                return fail("halt: quick stop not confirmed by %s" % ", ".join(
+                    n for n in quick if self._snapshot.axes[n].held_state != State.QUICK_STOP_ACTIVE))
         self._wait(lambda s: True, 1.0, after + 1)
-        return ok("halted")
+        return ok("halted" + (" (quick stop)" if quick else ""))
 
     def recover(self) -> Result:
         """Fault reset and re-enable; targets hold the position read over SDO
