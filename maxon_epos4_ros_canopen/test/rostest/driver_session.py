@@ -6,6 +6,7 @@ Imported by the executable test scripts next to it (not a test itself).
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import threading
 import time
@@ -18,6 +19,7 @@ from canopen.sdo.exceptions import SdoError
 import yaml
 from sensor_msgs.msg import JointState
 
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux: root may exceed rmem_max
 CLI_TIMEOUT = 120.0  # user-mode Linux runs ROS tools 6-10x slower than native
 WAIT = 90.0
 
@@ -90,6 +92,13 @@ class BusRecorder:
 
     def __init__(self, device: str) -> None:
         self.bus = can.Bus(interface="socketcan", channel=device)
+        # The kernel charges each buffered CAN frame near 1 KiB: with the
+        # default receive buffer a reader that falls 1 s behind on a loaded
+        # host (user-mode Linux) loses frames. Room for minutes of traffic.
+        try:
+            self.bus.socket.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 64 * 1024 * 1024)
+        except OSError:
+            self.bus.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024 * 1024)
         self.frames: List[can.Message] = []
         self._lock = threading.Lock()
         self._running = False
