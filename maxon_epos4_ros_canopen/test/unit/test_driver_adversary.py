@@ -96,8 +96,14 @@ def test_one_forged_fault_statusword_does_not_cut_a_moving_drives_power(rig):
     assert d.set_command(J1, "velocity", 900).success
     assert until(lambda: abs(d.joints[J1].velocity - 900) < 10)
     rig.drain()
-    forge(rig, 0x181, struct.pack("<Hb", 0x0208, 3))    # TxPDO1: statusword "fault"
-    assert until(lambda: d.joints[J1].error is not None)
+    # TxPDO1 with a statusword "fault". The receiver keeps the latest frame
+    # of each TPDO, so the drive's own next TPDO1 may replace a forged one
+    # before a cycle reads it: forge until the driver has seen one.
+    for _ in range(100):
+        forge(rig, 0x181, struct.pack("<Hb", 0x0208, 3))
+        if until(lambda: d.joints[J1].error is not None, 0.05):
+            break
+    assert d.joints[J1].error is not None
     assert "fault" in d.joints[J1].error
     time.sleep(0.2)
     words = [struct.unpack_from("<H", f)[0] for f in rig.sent(0x201)]

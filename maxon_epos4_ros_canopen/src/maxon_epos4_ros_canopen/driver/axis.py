@@ -85,6 +85,7 @@ class AxisSnapshot(NamedTuple):
     counters: Mapping[str, int]
     limits: JointLimits
     plan: NodePlan
+    status_cycle: int              # the cycle that last took in a statusword TPDO
 
     @property
     def mode(self) -> int:
@@ -616,14 +617,14 @@ class Axis:
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
             self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
             self.command_value, self.last_refusal, MappingProxyType(dict(self.readings)),
-            MappingProxyType(dict(self.counters)), self.limits, self.plan)
+            MappingProxyType(dict(self.counters)), self.limits, self.plan, self.status_seen_cycle)
 
 
 def initial_snapshot(cfg: NodeConfig, plan: NodePlan, limits: JointLimits) -> AxisSnapshot:
     """What status shows for an axis before the first init."""
     return AxisSnapshot(cfg.name, cfg.node_id, cfg.key, math.nan, math.nan, math.nan, 0, 0, None, 0, None,
                         "UNKNOWN", None, False, False, False, False, None, None, "", 0, 0, False, None, math.nan,
-                        "", MappingProxyType({}), MappingProxyType({}), limits, plan)
+                        "", MappingProxyType({}), MappingProxyType({}), limits, plan, 0)
 
 
 def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> Dict[str, float]:

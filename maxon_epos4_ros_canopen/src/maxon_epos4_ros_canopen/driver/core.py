@@ -673,7 +673,8 @@ class Driver:
         after = self._post(_StateRequest(names, state, fault_reset))
 
         def there(a: AxisSnapshot) -> bool:
-            return a.held_state == state and a.target_state is None and a.state == state
+            # on a statusword that came after the request, not a stale one
+            return a.held_state == state and a.target_state is None and a.state == state and a.status_cycle > after
 
         def settled(s: DriverSnapshot) -> bool:
             return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) for n in names)
@@ -1006,6 +1007,7 @@ class Driver:
         self.bus_error = None
         notes = []
         rehome = []
+        reconfigured: List[str] = []
         for name in names:
             a = self._snapshot.axes[name]
             if a.rebooted or a.nmt_state in ("STOPPED", "PRE-OPERATIONAL", "INITIALISING", "LOST"):
@@ -1017,6 +1019,7 @@ class Driver:
                     return fail("recover: %s" % e)
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
                 self._post(_Attach(name, binding))
+                reconfigured.append(name)
                 if a.rebooted:
                     # an incremental encoder restarts at 0: the position
                     # reference is gone, homing (if configured) finds it again
@@ -1026,6 +1029,12 @@ class Driver:
                     else:
                         notes.append("%s rebooted: its position reference is lost (no homing method configured)"
                                      % name)
+        for name in names:
+            if name not in reconfigured:
+                # a drive whose 0x1017 is 0 says nothing of its NMT state: one
+                # that left OPERATIONAL by itself (its communication error
+                # behaviour, 0x1029) is started again; harmless otherwise
+                self._nmt(NMT_START, self._nodes[name].cfg.node_id)
         self._post(*[_ClearError(name, self._position(name)) for name in names])
         err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
         if err:
