@@ -58,6 +58,7 @@ NMT_START, NMT_STOP, NMT_RESET_NODE = 0x01, 0x02, 0x81
 _PDO_MISSING_CYCLES = 50
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
+_SDO_ATTEMPTS = 3
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 CycleCallback = Callable[["Driver"], None]
 
@@ -697,12 +698,24 @@ class Driver:
     # =============================================================== SDO
     def _upload(self, name: str, key: ObjectKey) -> Any:
         var = find_variable(self._nodes[name].od, key)
-        with self._sdo_locks[name]:
-            return var.decode_raw(self._sdo[name].upload(key.index, key.subindex))
+        return var.decode_raw(self._sdo_transfer(name, lambda sdo: sdo.upload(key.index, key.subindex)))
 
     def _download(self, name: str, index: int, sub: int, data: bytes) -> None:
+        self._sdo_transfer(name, lambda sdo: sdo.download(index, sub, data))
+
+    def _sdo_transfer(self, name: str, transfer: Callable[[SdoClient], Any]) -> Any:
+        """One SDO transfer, tried again when its answer was not the one
+        asked for: another client on the same SDO channel (a user's tool, a
+        test probe) or a stray frame can take an answer. Aborts and silence
+        are final."""
         with self._sdo_locks[name]:
-            self._sdo[name].download(index, sub, data)
+            for attempt in range(_SDO_ATTEMPTS):
+                try:
+                    return transfer(self._sdo[name])
+                except SdoCommunicationError as e:
+                    if attempt + 1 == _SDO_ATTEMPTS or "No SDO response" in str(e):
+                        raise
+                    log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
 
     def _write_u32(self, name: str, index: int, sub: int, value: int) -> None:
         self._download(name, index, sub, value.to_bytes(4, "little"))
