@@ -1,7 +1,8 @@
 """canopen_motor_node's ROS interface, natively: the node and a virtual EPOS4
 share python-can's in-process bus (node_with_sim.py), a private roscore
 serves the parameters, and the test drives everything with the user's own
-command-line tools (rosservice, rostopic) and the spawner script.
+command-line tools (rosservice, rostopic) and the `controller_manager spawn`
+command of compat/controller_manager.
 
 The same session runs on a real vcan0 in test/rostest/driver_1dof_ppm.test;
 this one gives the fast suite the node's adapter code (services, controller
@@ -26,6 +27,7 @@ import yaml
 PKG = Path(__file__).resolve().parents[2]
 REPO = PKG.parent
 HERE = Path(__file__).resolve().parent
+CM_PKG = REPO / "compat" / "controller_manager"
 POS_CTRL = "/maxon/canopen_motor/base_link1_joint_position_controller"
 VEL_CTRL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
 JOINT = "base_link1_joint"
@@ -52,7 +54,8 @@ class Session:
         self.env["ROS_MASTER_URI"] = "http://localhost:%d" % free_port()
         self.env["ROS_LOG_DIR"] = str(tmp / "log")
         self.env["ROS_HOSTNAME"] = "localhost"
-        self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), self.env.get("PYTHONPATH", "")])
+        self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), str(CM_PKG / "src"),
+                                                  self.env.get("PYTHONPATH", "")])
         self.tmp = tmp
         self.procs: List[subprocess.Popen] = []
 
@@ -133,7 +136,7 @@ def session(tmp_path_factory):
     assert s.run("rosparam", "load", str(tmp / "params.yaml"), "/maxon/canopen_motor").returncode == 0
     s.node = s.spawn([sys.executable, str(HERE / "node_with_sim.py"), channel, "1:" + dcf, "--",
                       "__ns:=/maxon", "__name:=canopen_motor"], "node.log")
-    s.spawner = s.spawn([sys.executable, str(PKG / "scripts" / "controller_manager"), "spawn",
+    s.spawner = s.spawn([sys.executable, str(CM_PKG / "scripts" / "controller_manager"), "spawn",
                          "/maxon/canopen_motor/joint_state_controller", POS_CTRL,
                          "__ns:=/maxon", "__name:=controller_spawner"], "spawner.log")
     s.wait(lambda: "/maxon/driver/init" in s.run("rosservice", "list").stdout, "the driver's services")
@@ -338,4 +341,5 @@ def test_12_shutdown_then_init_again(session):
     session.wait(disabled, "diagnostics to show the drive disabled and NMT stopped")
     assert session.call("/maxon/driver/init")["success"]
     assert get_value(session, "6061") == "1"  # the running position controller's mode is restored
-    assert session.alive(session.node) and session.alive(session.spawner)
+    assert session.alive(session.node)
+    assert session.spawner.poll() == 0  # `controller_manager spawn` loads, starts and exits, as ROS's does
