@@ -10,18 +10,15 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import uuid
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import List
 
 import pytest
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_canopen_motor_node import Session, controller_states  # noqa: E402
+from test_canopen_motor_node import Session, controller_states, start_node  # noqa: E402
 
 PKG = Path(__file__).resolve().parents[2]
-HERE = Path(__file__).resolve().parent
 TOOLS = PKG.parent / "compat" / "controller_manager" / "scripts"
 JSC = "/maxon/canopen_motor/joint_state_controller"
 POS = "/maxon/canopen_motor/base_link1_joint_position_controller"
@@ -32,29 +29,8 @@ VEL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
 def session(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("cli")
     s = Session(tmp)
-    s.env["PYTHONPATH"] = ":".join([str(TOOLS.parent / "src"), s.env["PYTHONPATH"]])
     s.env["ROS_NAMESPACE"] = "/maxon"  # as a launch file's <group ns="/maxon"> sets it
-    s.spawn(["roscore", "-p", s.env["ROS_MASTER_URI"].rsplit(":", 1)[1]], "roscore.log")
-    s.wait(lambda: s.run("rosparam", "list").returncode == 0, "roscore")
-    params: Dict[str, Any] = {}
-    for name in ("canopen_bus_layer.yaml", "controller_1dof_ppm.yaml", "node_layer_1dof_ppm.yaml"):
-        with open(PKG / "config" / name) as stream:
-            for key, value in yaml.safe_load(stream).items():
-                if isinstance(value, dict) and isinstance(params.get(key), dict):
-                    params[key].update(value)
-                else:
-                    params[key] = value
-    channel = "cli_test_" + uuid.uuid4().hex[:8]
-    params["bus"]["device"] = "virtual:" + channel
-    dcf = str(PKG / "config" / "epos4_node1.dcf")
-    params["nodes"]["node1"]["eds_file"] = dcf
-    del params["nodes"]["node1"]["eds_pkg"]
-    with open(tmp / "params.yaml", "w") as stream:
-        yaml.safe_dump(params, stream)
-    assert s.run("rosparam", "load", str(tmp / "params.yaml"), "/maxon/canopen_motor").returncode == 0
-    s.node = s.spawn([sys.executable, str(HERE / "node_with_sim.py"), channel, "1:" + dcf, "--",
-                      "__ns:=/maxon", "__name:=canopen_motor"], "node.log")
-    s.wait(lambda: "/maxon/driver/init" in s.run("rosservice", "list").stdout, "the driver's services")
+    start_node(s, ("canopen_bus_layer.yaml", "controller_1dof_ppm.yaml", "node_layer_1dof_ppm.yaml"))
     assert s.call("/maxon/driver/init")["success"]
     yield s
     s.close()
