@@ -6,4 +6,5 @@ set -euo pipefail
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$REPO"
 tools/setup.sh
+echo "[demo] bringing up vcan0: natively where the kernel has vcan, otherwise by booting user-mode Linux (a few seconds)"
 exec tools/vcan_run.sh tools/demo_session.sh

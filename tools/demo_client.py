@@ -28,13 +28,25 @@ def shell(cmd: str) -> str:
 
 
 def main() -> int:
-    deadline = time.monotonic() + 180.0
-    while subprocess.run(["rosservice", "list"], capture_output=True, text=True).stdout.find(
-            NS + "/driver/init") < 0:
+    start = time.monotonic()
+    deadline = start + 180.0
+    print("[demo] roslaunch is starting the ROS master, the driver node and the virtual EPOS4; waiting for "
+          "the driver's services (about 20 s under user-mode Linux)", flush=True)
+    said = ""
+    while True:
+        listing = subprocess.run(["rosservice", "list"], capture_output=True, text=True)
+        if NS + "/driver/init" in listing.stdout:
+            break
+        stage = ("the driver node is starting (importing rospy, canopen, reading its DCF)"
+                 if listing.returncode == 0 else "the ROS master is starting")
+        if stage != said:
+            print("[demo] %4.0f s: %s" % (time.monotonic() - start, stage), flush=True)
+            said = stage
         if time.monotonic() > deadline:
             print("the driver's services did not appear", flush=True)
             return 1
         time.sleep(1.0)
+    print("[demo] %4.0f s: the driver offers its services" % (time.monotonic() - start), flush=True)
 
     if "success: True" not in shell("rosservice call " + NS + "/driver/init"):
         return 1

@@ -27,6 +27,9 @@ DEBIAN_PACKAGES=(
   python3-tf2-geometry-msgs libtf2-msgs-dev ros-tf2-msgs python3-tf2-msgs
   user-mode-linux kmod iproute2 python3-venv python3-yaml make g++ cmake
   python3-matplotlib  # benchmark plots (Debian's, built against Debian's numpy)
+  # what a user's own package needs to build on this workspace
+  # (catkin_create_pkg PKG std_msgs std_srvs rospy roscpp roslib)
+  libroslib-dev librospack-dev python3-roslib
 )
 
 os_id=$( . /etc/os-release 2>/dev/null; echo "${ID:-unknown}-${VERSION_ID:-}" )
@@ -81,8 +84,9 @@ wanted=()
 for pkg in maxon_epos4_ros1 maxon_epos4_ros_canopen maxon_epos4_moveit_config mani_ros; do
   [ -f "$pkg/package.xml" ] && wanted+=("$pkg")
 done
-# compat/ holds message packages Debian lacks; link one in only where the
-# system does not have it already.
+# compat/ holds ros_canopen's and ros_control's package names Debian lacks
+# (message packages, canopen_motor_node, controller_manager, xacro); link one
+# in only where the system does not have it already.
 for dir in compat/*/; do
   pkg=$(basename "$dir")
   [ -f "$dir/package.xml" ] || continue

@@ -24,6 +24,7 @@ from types import MappingProxyType
 from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from .cia402 import MODE_SHORT_NAMES
+from .can_device import SOCKETCAN, CanDeviceError, parse_device
 from .objects import ObjectKey, ObjectStringError, parse_object_key, parse_publish_spec
 from .units import Expression, UnitExpressionError, compile_expression
 
@@ -83,7 +84,9 @@ PDO_LAYOUTS = ("dcf", "compact")
 # bit 8, the drive decelerates on its profile and stays Operation Enabled.
 HALT_MODES = ("quick_stop", "halt_bit")
 
-_BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator"}
+_BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator", "bitrate"}
+# CiA 301 bit rates, bit/s
+_BITRATES = (10000, 20000, 50000, 125000, 250000, 500000, 800000, 1000000)
 _SYNC_KEYS = {"interval_ms", "update_ms", "overflow", "kernel_timer"}
 _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
@@ -109,6 +112,7 @@ class BusConfig:
     loopback: bool = False
     driver_plugin: str = _SOCKETCAN_PLUGIN
     master_allocator: str = "canopen::SimpleMaster::Allocator"
+    bitrate: Optional[int] = None  # bit/s, for adapters opened with one (not SocketCAN)
 
 
 @dataclass(frozen=True)
@@ -317,15 +321,26 @@ def _load_bus(r: _Reader, params: Mapping[str, Any]) -> BusConfig:
     bus = r.mapping(params.get("bus"), "bus")
     r.unknown(bus, _BUS_KEYS, "bus/")
     device = r.string(bus.get("device", "can0"), "bus/device")
-    if not device or (device.startswith("virtual:") and len(device) == len("virtual:")):
-        raise r.fail("bus/device", "empty device name")
+    try:
+        interface, _ = parse_device(device)
+    except CanDeviceError as exc:
+        raise r.fail("bus/device", str(exc))
     loopback = r.boolean(bus.get("loopback", False), "bus/loopback")
     plugin = r.string(bus.get("driver_plugin", _SOCKETCAN_PLUGIN), "bus/driver_plugin")
     if plugin != _SOCKETCAN_PLUGIN:
-        r.warnings.append("%s: bus/driver_plugin %r ignored: this driver talks SocketCAN (or python-can "
-                          "'virtual:' devices)" % (r.source, plugin))
+        r.warnings.append("%s: bus/driver_plugin %r ignored: bus/device chooses the adapter "
+                          "(can0 for SocketCAN, INTERFACE:CHANNEL for others)" % (r.source, plugin))
+    bitrate = None
+    if "bitrate" in bus:
+        bitrate = r.integer(bus.get("bitrate"), "bus/bitrate", _BITRATES[0], _BITRATES[-1])
+        if bitrate not in _BITRATES:
+            raise r.fail("bus/bitrate", "%d is not a CANopen bit rate (%s)"
+                         % (bitrate, ", ".join(map(str, _BITRATES))))
+        if interface == SOCKETCAN:
+            r.warnings.append("%s: bus/bitrate ignored for %s: a SocketCAN interface's bit rate is set with "
+                              "`ip link set %s type can bitrate %d`" % (r.source, device, device, bitrate))
     allocator = r.string(bus.get("master_allocator", BusConfig.master_allocator), "bus/master_allocator")
-    return BusConfig(device, loopback, plugin, allocator)
+    return BusConfig(device, loopback, plugin, allocator, bitrate)
 
 
 def _load_sync(r: _Reader, params: Mapping[str, Any]) -> SyncConfig:

@@ -1,7 +1,8 @@
 """canopen_motor_node's ROS interface, natively: the node and a virtual EPOS4
 share python-can's in-process bus (node_with_sim.py), a private roscore
 serves the parameters, and the test drives everything with the user's own
-command-line tools (rosservice, rostopic) and the spawner script.
+command-line tools (rosservice, rostopic) and the `controller_manager spawn`
+command of compat/controller_manager.
 
 The same session runs on a real vcan0 in test/rostest/driver_1dof_ppm.test;
 this one gives the fast suite the node's adapter code (services, controller
@@ -18,7 +19,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Sequence
 
 import pytest
 import yaml
@@ -26,6 +27,7 @@ import yaml
 PKG = Path(__file__).resolve().parents[2]
 REPO = PKG.parent
 HERE = Path(__file__).resolve().parent
+CM_PKG = REPO / "compat" / "controller_manager"
 POS_CTRL = "/maxon/canopen_motor/base_link1_joint_position_controller"
 VEL_CTRL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
 JOINT = "base_link1_joint"
@@ -52,7 +54,8 @@ class Session:
         self.env["ROS_MASTER_URI"] = "http://localhost:%d" % free_port()
         self.env["ROS_LOG_DIR"] = str(tmp / "log")
         self.env["ROS_HOSTNAME"] = "localhost"
-        self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), self.env.get("PYTHONPATH", "")])
+        self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), str(CM_PKG / "src"),
+                                                  self.env.get("PYTHONPATH", "")])
         self.tmp = tmp
         self.procs: List[subprocess.Popen] = []
 
@@ -108,15 +111,14 @@ def controller_states(session: Session) -> Dict[str, str]:
     return {c["name"]: c["state"] for c in answer.get("controller") or []}
 
 
-@pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("node")
-    s = Session(tmp)
+def start_node(s: Session, layers: Sequence[str]) -> None:
+    """roscore, the example's layers (config/) on the parameter server, and the
+    node with a virtual EPOS4 (node-ID 1) on a private virtual channel; returns
+    once the driver's services are offered. The node is ``s.node``."""
     s.spawn(["roscore", "-p", s.env["ROS_MASTER_URI"].rsplit(":", 1)[1]], "roscore.log")
     s.wait(lambda: s.run("rosparam", "list").returncode == 0, "roscore")
     params: Dict[str, Any] = {}
-    for name in ("canopen_bus_layer.yaml", "controller_1dof_ppm.yaml", "node_layer_1dof_ppm.yaml",
-                 "ros_layer.yaml"):
+    for name in layers:
         with open(PKG / "config" / name) as stream:
             for key, value in yaml.safe_load(stream).items():
                 if isinstance(value, dict) and isinstance(params.get(key), dict):
@@ -128,15 +130,23 @@ def session(tmp_path_factory):
     dcf = str(PKG / "config" / "epos4_node1.dcf")
     params["nodes"]["node1"]["eds_file"] = dcf
     del params["nodes"]["node1"]["eds_pkg"]
-    with open(tmp / "params.yaml", "w") as stream:
+    with open(s.tmp / "params.yaml", "w") as stream:
         yaml.safe_dump(params, stream)
-    assert s.run("rosparam", "load", str(tmp / "params.yaml"), "/maxon/canopen_motor").returncode == 0
+    assert s.run("rosparam", "load", str(s.tmp / "params.yaml"), "/maxon/canopen_motor").returncode == 0
     s.node = s.spawn([sys.executable, str(HERE / "node_with_sim.py"), channel, "1:" + dcf, "--",
                       "__ns:=/maxon", "__name:=canopen_motor"], "node.log")
-    s.spawner = s.spawn([sys.executable, str(PKG / "scripts" / "controller_manager"), "spawn",
+    s.wait(lambda: "/maxon/driver/init" in s.run("rosservice", "list").stdout, "the driver's services")
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("node")
+    s = Session(tmp)
+    start_node(s, ("canopen_bus_layer.yaml", "controller_1dof_ppm.yaml", "node_layer_1dof_ppm.yaml",
+                   "ros_layer.yaml"))
+    s.spawner = s.spawn([sys.executable, str(CM_PKG / "scripts" / "controller_manager"), "spawn",
                          "/maxon/canopen_motor/joint_state_controller", POS_CTRL,
                          "__ns:=/maxon", "__name:=controller_spawner"], "spawner.log")
-    s.wait(lambda: "/maxon/driver/init" in s.run("rosservice", "list").stdout, "the driver's services")
     yield s
     s.close()
 
@@ -338,4 +348,5 @@ def test_12_shutdown_then_init_again(session):
     session.wait(disabled, "diagnostics to show the drive disabled and NMT stopped")
     assert session.call("/maxon/driver/init")["success"]
     assert get_value(session, "6061") == "1"  # the running position controller's mode is restored
-    assert session.alive(session.node) and session.alive(session.spawner)
+    assert session.alive(session.node)
+    assert session.spawner.poll() == 0  # `controller_manager spawn` loads, starts and exits, as ROS's does

@@ -1,8 +1,8 @@
 """The CAN side the canopen library leaves to the master: opening the
-python-can bus from ``bus/device``, the SYNC producer with ros_canopen's
-overflow counter (canopen's SyncProducer sends no counter), kernel-timed on
-SocketCAN, and the master's heartbeat producer (``heartbeat/rate``,
-``heartbeat/msg``)."""
+python-can bus from ``bus/device`` and ``bus/bitrate`` (can_device.py), the
+SYNC producer with ros_canopen's overflow counter (canopen's SyncProducer
+sends no counter), kernel-timed on SocketCAN, and the master's heartbeat
+producer (``heartbeat/rate``, ``heartbeat/msg``)."""
 from __future__ import annotations
 
 import logging
@@ -11,20 +11,16 @@ from typing import List, Optional
 
 import can
 
+from ..can_device import open_device
 from ..config import BusConfig, HeartbeatConfig
 
-VIRTUAL_PREFIX = "virtual:"
 SYNC_COB_ID = 0x080
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
 
 def open_bus(cfg: BusConfig) -> can.BusABC:
-    """``vcan0``/``can0`` -> SocketCAN; ``virtual:NAME`` -> python-can's
-    in-process virtual channel NAME (tests and the no-vcan demo)."""
-    if cfg.device.startswith(VIRTUAL_PREFIX):
-        return can.Bus(interface="virtual", channel=cfg.device[len(VIRTUAL_PREFIX):],
-                       receive_own_messages=cfg.loopback)
-    return can.Bus(interface="socketcan", channel=cfg.device, receive_own_messages=cfg.loopback)
+    """The bus of ``bus/device`` and ``bus/bitrate``."""
+    return open_device(cfg.device, cfg.bitrate, cfg.loopback)
 
 
 class SyncProducer:

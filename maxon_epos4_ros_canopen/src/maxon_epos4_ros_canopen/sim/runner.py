@@ -16,6 +16,7 @@ from typing import Any, Callable, Dict, List, Optional, Tuple
 
 import can
 
+from ..can_device import open_device
 from .drive import VirtualEpos4
 from .objects import load_od
 
@@ -203,12 +204,9 @@ class Simulator:
 
 
 def open_bus(device: str) -> can.BusABC:
-    """``vcan0``/``can0`` -> SocketCAN; ``virtual:NAME`` -> python-can's in-process bus."""
-    if device.startswith("virtual:"):
-        return can.Bus(interface="virtual", channel=device[len("virtual:"):])
-    if not device or ":" in device:
-        raise ValueError("device %r: expected a SocketCAN interface or virtual:NAME" % device)
-    return can.Bus(interface="socketcan", channel=device)
+    """The bus of a ``bus/device`` string (can_device.py): ``vcan0``, ``virtual:NAME``,
+    ``INTERFACE:CHANNEL``; a CanDeviceError naming the device when it cannot be opened."""
+    return open_device(device)
 
 
 def node_configs_from_param(value: Any, config_dir: str,

@@ -1,0 +1,69 @@
+"""Naming a CAN adapter in one string, as ``bus/device`` and the tools take it.
+
+``can0`` is a SocketCAN interface (ros_canopen's only kind); ``INTERFACE:CHANNEL``
+is any adapter python-can supports: ``pcan:PCAN_USBBUS1``, ``ixxat:0``,
+``kvaser:0``, ``slcan:/dev/ttyACM0``, ``virtual:NAME`` (in-process, for tests).
+"""
+from __future__ import annotations
+
+import errno
+from typing import Optional, Tuple
+
+import can
+
+SOCKETCAN = "socketcan"
+# Adapters opened without a bit rate (SocketCAN's is set
+# with `ip link`, python-can's virtual bus has none).
+NO_BITRATE = frozenset({SOCKETCAN, "virtual", "socketcand"})
+DEFAULT_BITRATE = 1000000  # maxon's recommendation for EPOS4 networks
+
+
+class CanDeviceError(Exception):
+    """A ``bus/device`` that names no usable CAN adapter; the message names it."""
+
+
+def parse_device(device: str) -> Tuple[str, str]:
+    """``bus/device`` as (python-can interface, channel).
+
+    ``can0`` -> SocketCAN ``can0``; ``INTERFACE:CHANNEL`` -> any interface
+    python-can knows (``pcan:PCAN_USBBUS1``, ``ixxat:0``, ``kvaser:0``,
+    ``slcan:/dev/ttyACM0``, ``virtual:NAME``); only the first colon splits.
+    """
+    if not isinstance(device, str) or not device.strip():
+        raise CanDeviceError("CAN device %r: empty name" % (device,))
+    if ":" not in device:
+        return SOCKETCAN, device
+    interface, channel = device.split(":", 1)
+    if interface not in can.interfaces.VALID_INTERFACES:
+        raise CanDeviceError("CAN device %r: unknown interface %r (python-can knows %s; a name without "
+                             "':' is a SocketCAN interface)"
+                             % (device, interface, ", ".join(sorted(can.interfaces.VALID_INTERFACES))))
+    if not channel:
+        raise CanDeviceError("CAN device %r: no channel after %r" % (device, interface + ":"))
+    return interface, channel
+
+
+def open_device(device: str, bitrate: Optional[int] = None, receive_own_messages: bool = False) -> can.BusABC:
+    """Opens ``device`` (see parse_device); ``bitrate`` (bit/s) goes to the
+    adapters that take one, 1 Mbit/s when not given. Any failure is a
+    CanDeviceError naming the device."""
+    interface, channel = parse_device(device)
+    kwargs = {"interface": interface, "channel": channel, "receive_own_messages": receive_own_messages}
+    if interface not in NO_BITRATE:
+        kwargs["bitrate"] = int(bitrate) if bitrate else DEFAULT_BITRATE
+    try:
+        return can.Bus(**kwargs)
+    except Exception as exc:  # python-can raises OSError, CanError, NameError, ImportError ... per adapter
+        raise CanDeviceError("CAN device %r (python-can interface %s, channel %s): %s%s"
+                             % (device, interface, channel, exc, _hint(interface, channel, exc))) from None
+
+
+def _hint(interface: str, channel: str, exc: Exception) -> str:
+    if interface == SOCKETCAN and isinstance(exc, OSError) and exc.errno == errno.ENODEV:
+        return " (no network interface %s: `ip link show` lists them; a virtual one: " \
+               "`ip link add dev %s type vcan && ip link set %s up`)" % (channel, channel, channel)
+    if interface == SOCKETCAN and isinstance(exc, OSError) and exc.errno == errno.EAFNOSUPPORT:
+        return " (this kernel has no SocketCAN)"
+    if interface != SOCKETCAN:
+        return " (is the adapter plugged in and its vendor library installed?)"
+    return ""

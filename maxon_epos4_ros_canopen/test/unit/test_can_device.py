@@ -1,0 +1,95 @@
+"""bus/device names any adapter python-can supports: SocketCAN names, and
+INTERFACE:CHANNEL forms with a bit rate where the adapter takes one."""
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+
+from maxon_epos4_ros_canopen.can_device import CanDeviceError, open_device, parse_device
+from maxon_epos4_ros_canopen.config import ConfigError, load_config
+from maxon_epos4_ros_canopen.driver.bus import open_bus
+
+
+@pytest.mark.parametrize("device, expected", [
+    ("can0", ("socketcan", "can0")),
+    ("vcan0", ("socketcan", "vcan0")),
+    ("socketcan:can1", ("socketcan", "can1")),
+    ("pcan:PCAN_USBBUS1", ("pcan", "PCAN_USBBUS1")),
+    ("ixxat:0", ("ixxat", "0")),
+    ("kvaser:0", ("kvaser", "0")),
+    ("slcan:/dev/ttyACM0", ("slcan", "/dev/ttyACM0")),
+    ("slcan:/dev/ttyACM0@115200", ("slcan", "/dev/ttyACM0@115200")),
+    ("virtual:bench", ("virtual", "bench")),
+])
+def test_device_forms(device, expected):
+    assert parse_device(device) == expected
+
+
+@pytest.mark.parametrize("device, message", [
+    ("", "empty name"),
+    ("foo:0", "unknown interface 'foo'"),
+    ("pcan:", "no channel after 'pcan:'"),
+])
+def test_bad_device_names_are_named_in_the_error(device, message):
+    with pytest.raises(CanDeviceError, match=message) as info:
+        parse_device(device)
+    assert repr(device) in str(info.value)
+
+
+def test_virtual_form_carries_frames_between_two_opened_buses():
+    channel = "can_device_" + uuid.uuid4().hex[:8]
+    a, b = open_device("virtual:" + channel), open_device("virtual:" + channel)
+    try:
+        a.send(can.Message(arbitration_id=0x701, data=b"\x05", is_extended_id=False))
+        got = b.recv(timeout=5.0)
+        assert got is not None and got.arbitration_id == 0x701 and bytes(got.data) == b"\x05"
+    finally:
+        a.shutdown()
+        b.shutdown()
+
+
+PKG = Path(__file__).resolve().parents[2]
+
+
+def layers(bus):
+    return {"bus": bus, "sync": {"interval_ms": 10},
+            "nodes": {"node1": {"id": 1, "eds_file": str(PKG / "config" / "epos4_node1.dcf")}}}
+
+
+def test_bus_layer_with_bitrate_opens_through_open_bus():
+    channel = "can_device_" + uuid.uuid4().hex[:8]
+    cfg = load_config(layers({"device": "virtual:" + channel, "bitrate": 500000}), "test", lambda p: "/")
+    assert cfg.bus.bitrate == 500000 and cfg.bus.device == "virtual:" + channel
+    bus = open_bus(cfg.bus)
+    try:
+        assert bus.channel_info  # an opened python-can bus
+    finally:
+        bus.shutdown()
+
+
+@pytest.mark.parametrize("device", ["pcan:PCAN_USBBUS1", "ixxat:0", "kvaser:0", "slcan:/dev/ttyACM0"])
+def test_missing_adapter_is_a_clear_error_naming_the_device(device):
+    # None of these adapters (nor their vendor libraries) exist on the test machines.
+    with pytest.raises(CanDeviceError) as info:
+        open_device(device, 1000000)
+    assert str(info.value).startswith("CAN device %r (python-can interface %s" % (device, device.split(":")[0]))
+
+
+def test_missing_socketcan_interface_names_it():
+    with pytest.raises(CanDeviceError, match="'vcan9'"):
+        open_device("vcan9")
+
+
+def test_config_rejects_unknown_interface_and_odd_bitrate():
+    with pytest.raises(ConfigError, match="bus/device.*unknown interface 'usb'"):
+        load_config(layers({"device": "usb:0"}), "test", lambda p: "/")
+    with pytest.raises(ConfigError, match="bus/bitrate.*not a CANopen bit rate"):
+        load_config(layers({"device": "pcan:PCAN_USBBUS1", "bitrate": 300000}), "test", lambda p: "/")
+
+
+def test_bitrate_on_socketcan_is_reported_as_ignored():
+    cfg = load_config(layers({"device": "can0", "bitrate": 1000000}), "test", lambda p: "/")
+    assert any("bus/bitrate ignored for can0" in w for w in cfg.warnings)
