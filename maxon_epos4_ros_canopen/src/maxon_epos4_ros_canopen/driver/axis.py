@@ -257,6 +257,8 @@ class Axis:
         # A compact layout leaves modes of operation to SDO: the service that
         # switches modes confirms 0x6061 by SDO and tells the axis.
         self._display_mapped = any(MODES_DISPLAY in t.keys for t in self._tx)
+        if not self._display_mapped:
+            self.mode_display = 0  # unknown after a (re)configuration until confirmed
         self._cw_rx = next(i for i, r in enumerate(self._rx) if CONTROLWORD in r.keys)
         self._cyclic_rx = {}
         for i, r in enumerate(self._rx):

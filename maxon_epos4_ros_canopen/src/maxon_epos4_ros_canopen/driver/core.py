@@ -532,6 +532,16 @@ class Driver:
         self._axes = axes
         self._axis = {a.name: a for a in axes}
         self._by_node_id = {a.node_id: a for a in axes}
+        # What a previous session left in the inbox (a request its cycle
+        # never took, heartbeats from the configuration) must not act on
+        # this one; joint limits are the axes' already.
+        while True:
+            try:
+                self._inbox.get_nowait()
+            except queue.Empty:
+                break
+        for axis in axes:
+            axis.limits = self._limits[axis.name]
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="epos4_driver_cycle", daemon=True)
         self._thread.start()
@@ -846,7 +856,6 @@ class Driver:
         for axis in axes:
             axis.last_heartbeat = axis.status_seen = now
         self._start_cycle(axes)
-        self._wait_cycles(2)
         err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
         if err:
             raise _InitError("enable failed: " + err)
