@@ -714,16 +714,17 @@ class Driver:
         self._sdo_transfer(name, lambda sdo: sdo.download(index, sub, data))
 
     def _sdo_transfer(self, name: str, transfer: Callable[[SdoClient], Any]) -> Any:
-        """One SDO transfer, tried again when its answer was not the one
-        asked for: another client on the same SDO channel (a user's tool, a
-        test probe) or a stray frame can take an answer. Aborts and silence
-        are final."""
+        """One SDO transfer, tried again when its answer was not the one asked
+        for (another client on the same SDO channel, a user's tool or a test
+        probe, or a stray frame can take an answer) or did not come in time
+        (a loaded host). Every transfer the driver makes may be repeated:
+        reads, and writes of a value. An abort is final."""
         with self._sdo_locks[name]:
             for attempt in range(_SDO_ATTEMPTS):
                 try:
                     return transfer(self._sdo[name])
                 except SdoCommunicationError as e:
-                    if attempt + 1 == _SDO_ATTEMPTS or "No SDO response" in str(e):
+                    if attempt + 1 == _SDO_ATTEMPTS:
                         raise
                     log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
 
@@ -948,12 +949,13 @@ class Driver:
         if not force and a.active_mode == mode and a.mode_display == mode and a.held_state == State.OPERATION_ENABLED:
             self._wait(lambda s: True, 1.0, self._post(_Hold(name, self._position(name))))
             return ok()
-        self._post(_Hold(name, self._position(name)))
+        position = self._position(name)
+        self._post(_Hold(name, position))
         node = self._nodes[name]
         err = self._go([name], SWITCHING_STATE[node.cfg.switching_state])
         if err:
             return fail("mode switch of %s: %s" % (name, err))
-        self._post(_SetMode(name, mode, self._position(name)))
+        self._post(_SetMode(name, mode, position))
         if MODES_OF_OPERATION not in node.plan.rx_keys():
             self._download(name, MODES_OF_OPERATION.index, 0, mode.to_bytes(1, "little", signed=True))
         if MODES_DISPLAY in node.plan.tx_keys():
