@@ -105,6 +105,10 @@ class BusRecorder:
         self._thread: Optional[threading.Thread] = None
 
     def start(self) -> None:
+        # what the socket kept from before start() is not part of this recording
+        for _ in range(1000000):
+            if self.bus.recv(timeout=0.0) is None:
+                break
         with self._lock:
             self.frames = []
         self._running = True

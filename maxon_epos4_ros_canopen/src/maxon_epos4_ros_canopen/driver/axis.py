@@ -270,6 +270,8 @@ class Axis:
             for key in expr.objects:
                 names.append((object_variable_name(key), key))
         self._env_keys = tuple(dict(names).items())
+        for name, _ in self._env_keys:  # unknown (NaN) until a TPDO carries it
+            self.env.setdefault(name, math.nan)
         self.env.update(binding.initial_env)
         self.raw_position = binding.raw_position
         self.readings = {}
