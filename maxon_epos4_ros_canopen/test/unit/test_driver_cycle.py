@@ -270,3 +270,14 @@ def test_undefined_statusword_and_short_emcy_are_counted(h):
     assert j.counters["undefined_statusword"] == 1 and j.state == State.OPERATION_ENABLED and not j.error
     j.on_emcy(b"\x10")
     assert j.counters["bad_emcy"] == 1
+
+
+def test_readings_are_nan_until_the_tpdo_a_conversion_reads_has_come():
+    h = Harness()
+    del h.payload[0x381]                 # the statusword came, the position not yet
+    h.cycle(sw=SW_SWITCH_ON_DISABLED)
+    assert h.axis.state == State.SWITCH_ON_DISABLED
+    assert math.isnan(h.axis.position)
+    h.payload[0x381] = struct.pack("<ii", 1234, 0)
+    h.cycle()
+    assert h.axis.position == 1234
