@@ -81,7 +81,7 @@ class AxisSnapshot(NamedTuple):
     command_kind: Optional[str]
     command_value: float
     last_refusal: str
-    readings: Mapping[ObjectKey, Any]
+    tpdo_values: Tuple[Tuple[Tuple[ObjectKey, ...], Tuple[Any, ...]], ...]  # per TPDO received: keys, values
     counters: Mapping[str, int]
     limits: JointLimits
     plan: NodePlan
@@ -91,6 +91,11 @@ class AxisSnapshot(NamedTuple):
     def mode(self) -> int:
         """The drive's mode of operation display (0x6061)."""
         return self.mode_display
+
+    @property
+    def readings(self) -> Dict[ObjectKey, Any]:
+        """object -> latest value of every TPDO-mapped object received."""
+        return {k: v for keys, values in self.tpdo_values for k, v in zip(keys, values)}
 
     def mode_name(self) -> str:
         return cia402.mode_name(self.mode_display)
@@ -197,7 +202,6 @@ class Axis:
         self.statusword = 0
         self.state: Optional[State] = None
         self.mode_display = 0
-        self.readings: Dict[ObjectKey, Any] = {}
         self.env: Dict[str, float] = {"pos": math.nan, "vel": math.nan, "eff": math.nan}
         # node status
         self.nmt_state = "UNKNOWN"
@@ -229,13 +233,23 @@ class Axis:
         self.counters: Dict[str, int] = {"bad_tpdo": 0, "undefined_statusword": 0, "undefined_nmt_state": 0,
                                          "bad_heartbeat": 0, "bad_emcy": 0, "refused_commands": 0,
                                          "clipped_commands": 0}
+        self._counters_view: Optional[Mapping[str, int]] = None
         self._rx: Tuple[RxPdo, ...] = ()
         self._tx: Tuple[TxPdo, ...] = ()
         self._tx_last: List[Any] = []
+        self._tx_vals: List[Optional[Tuple[Any, ...]]] = []
         self._rx_last: List[bytes] = []
         self._status_pdo = -1
-        self._out: Dict[ObjectKey, int] = {}
-        self._env_keys: Tuple[Tuple[str, ObjectKey], ...] = ()
+        # Where each object sits, worked out at attach so the cycle indexes
+        # lists instead of hashing keys: RxPDO values per PDO, and
+        # (PDO, field) of each object in the RxPDOs and TxPDOs.
+        self._out_vals: List[List[int]] = []
+        self._out_at: Dict[ObjectKey, Tuple[Tuple[int, int], ...]] = {}
+        self._in_at: Dict[ObjectKey, Tuple[int, int]] = {}
+        self._sw_at: Tuple[int, int] = (0, 0)
+        self._mode_at: Optional[Tuple[int, int]] = None
+        self._pos_at: Optional[Tuple[int, int]] = None
+        self._env_at: Tuple[Tuple[str, int, int], ...] = ()
         self._cyclic_rx: Dict[ObjectKey, int] = {}
         self._cw_rx = -1
         self._fresh_after = 0.0
@@ -247,34 +261,47 @@ class Axis:
         readings are unknown again until its TPDOs arrive."""
         self._rx, self._tx = binding.rx, binding.tx
         self._tx_last = [None] * len(self._tx)
+        self._tx_vals = [None] * len(self._tx)
         self._fresh_after = binding.configured_at
         self._rx_last = [b""] * len(self._rx)
-        self._out = dict(binding.initial_out)
-        self._out[CONTROLWORD] = 0
-        if MODES_OF_OPERATION in self._out and self.active_mode is not None:
-            self._out[MODES_OF_OPERATION] = self.active_mode
-        self._status_pdo = next(i for i, t in enumerate(self._tx) if STATUSWORD in t.keys)
+        self._out_vals = [[int(binding.initial_out.get(k, 0)) for k in r.keys] for r in self._rx]
+        out_at: Dict[ObjectKey, List[Tuple[int, int]]] = {}
+        for i, r in enumerate(self._rx):
+            for j, key in enumerate(r.keys):
+                out_at.setdefault(key, []).append((i, j))
+        self._out_at = {k: tuple(v) for k, v in out_at.items()}
+        self._in_at = {}
+        for i, t in enumerate(self._tx):
+            for j, key in enumerate(t.keys):
+                self._in_at.setdefault(key, (i, j))
+        self._set_out(CONTROLWORD, 0)
+        if self.active_mode is not None:
+            self._set_out(MODES_OF_OPERATION, self.active_mode)
+        self._sw_at = self._in_at[STATUSWORD]
+        self._status_pdo = self._sw_at[0]
+        self._mode_at = self._in_at.get(MODES_DISPLAY)
+        self._pos_at = self._in_at.get(POSITION_ACTUAL)
         # A compact layout leaves modes of operation to SDO: the service that
         # switches modes confirms 0x6061 by SDO and tells the axis.
-        self._display_mapped = any(MODES_DISPLAY in t.keys for t in self._tx)
+        self._display_mapped = self._mode_at is not None
         if not self._display_mapped:
             self.mode_display = 0  # unknown after a (re)configuration until confirmed
-        self._cw_rx = next(i for i, r in enumerate(self._rx) if CONTROLWORD in r.keys)
+        self._cw_rx = self._out_at[CONTROLWORD][0][0]
         self._cyclic_rx = {}
-        for i, r in enumerate(self._rx):
-            for key in r.keys:
-                if key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
-                    self._cyclic_rx[key] = i
+        for key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
+            if key in self._out_at:
+                self._cyclic_rx[key] = self._out_at[key][0][0]
         names = []
         for expr in self._from_device + tuple(self.converter.expressions.values()):
             for key in expr.objects:
                 names.append((object_variable_name(key), key))
         self._env_keys = tuple(dict(names).items())
+        self._env_at = tuple((name, self._in_at[key][0], self._in_at[key][1])
+                             for name, key in self._env_keys if key in self._in_at)
         for name, _ in self._env_keys:  # unknown (NaN) until a TPDO carries it
             self.env.setdefault(name, math.nan)
         self.env.update(binding.initial_env)
         self.raw_position = binding.raw_position
-        self.readings = {}
         self.state = None
         self.statusword = 0
         self.heartbeat_ms = binding.heartbeat_ms
@@ -297,7 +324,7 @@ class Axis:
     # ------------------------------------------------------------- read
     def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
         """Take the TPDO frames that came since the last cycle."""
-        readings = self.readings
+        vals = self._tx_vals
         for i, tpdo in enumerate(self._tx):
             frame = receiver.slots.get(tpdo.cob_id)
             if frame is None or frame is self._tx_last[i]:
@@ -307,31 +334,34 @@ class Axis:
                 continue
             values = tpdo.decode(frame[0])
             if values is None:
-                self.counters["bad_tpdo"] += 1
+                self._count("bad_tpdo")
                 continue
-            for key, value in zip(tpdo.keys, values):
-                readings[key] = value
+            vals[i] = values
             if i == self._status_pdo:
                 self.status_seen = frame[1]
                 self.status_seen_cycle = cycle
-        sw = readings.get(STATUSWORD)
-        if sw is None:
+        si, sj = self._sw_at
+        if vals[si] is None:
             return
+        sw = vals[si][sj]
         if sw != self.statusword or self.state is None:
             try:
                 state = cia402.state_from_statusword(sw)
             except ValueError:
-                self.counters["undefined_statusword"] += 1
+                self._count("undefined_statusword")
                 state = self.state
             self.statusword = sw
             self.state = state
-        self.mode_display = readings.get(MODES_DISPLAY, self.mode_display)
-        self.raw_position = readings.get(POSITION_ACTUAL, self.raw_position)
+        at = self._mode_at
+        if at is not None and vals[at[0]] is not None:
+            self.mode_display = vals[at[0]][at[1]]
+        at = self._pos_at
+        if at is not None and vals[at[0]] is not None:
+            self.raw_position = vals[at[0]][at[1]]
         env = self.env
-        for name, key in self._env_keys:
-            value = readings.get(key)
-            if value is not None:
-                env[name] = value
+        for name, i, j in self._env_at:
+            if vals[i] is not None:
+                env[name] = vals[i][j]
         env["pos"], env["vel"], env["eff"] = self.position, self.velocity, self.effort
         pos, vel, eff = self._from_device
         self.position = pos.evaluate(env)
@@ -388,17 +418,15 @@ class Axis:
         self._ppm_pending = None
         mode = mode_of(self.active_mode)
         if mode is not None and mode.cyclic and mode.command_kind != "position":
-            self._out[TARGET_OF_KIND[mode.command_kind]] = 0
+            self._set_out(TARGET_OF_KIND[mode.command_kind], 0)
 
     def hold(self, raw_position: int) -> None:
         """Targets to 'stay where you are' at a position read by SDO: used
         before enabling and when switching modes, so nothing jumps."""
         self.command_kind = None
         self.command_value = math.nan
-        out = self._out
         for key, value in ((TARGET_POSITION, raw_position), (TARGET_VELOCITY, 0), (TARGET_TORQUE, 0)):
-            if key in out:
-                out[key] = value
+            self._set_out(key, value)
         self.command_raw = raw_position
         self._ppm_pending = raw_position if self.active_mode == PROFILE_POSITION.number else None
 
@@ -424,16 +452,20 @@ class Axis:
             self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
                 cycle - self.status_seen_cycle, (now - self.status_seen) * 1000))
 
+    def _count(self, what: str) -> None:
+        self.counters[what] += 1
+        self._counters_view = None
+
     def on_heartbeat(self, data: bytes, now: float) -> None:
         if now < self._fresh_after:
             return  # from before the node was (re)configured: the boot-up of its reset
         if len(data) != 1:
-            self.counters["bad_heartbeat"] += 1
+            self._count("bad_heartbeat")
             return
         state = data[0] & 0x7F  # bit 7 is the toggle bit of node guarding
         name = NMT_NAMES.get(state)
         if name is None:
-            self.counters["undefined_nmt_state"] += 1
+            self._count("undefined_nmt_state")
             return
         self.last_heartbeat = now
         self.nmt_state = name
@@ -442,7 +474,7 @@ class Axis:
 
     def on_emcy(self, data: bytes) -> None:
         if len(data) < 3:
-            self.counters["bad_emcy"] += 1
+            self._count("bad_emcy")
             return
         code = data[0] | data[1] << 8
         self.error_register = data[2]
@@ -464,15 +496,18 @@ class Axis:
 
     def set_mode(self, number: int, raw_position: int) -> None:
         self.active_mode = number
-        if MODES_OF_OPERATION in self._out:
-            self._out[MODES_OF_OPERATION] = number
+        self._set_out(MODES_OF_OPERATION, number)
         self.hold(raw_position)
 
     def set_output(self, key: ObjectKey, value: int) -> None:
         """A value set_object wrote by SDO to an object an RxPDO carries: the
         PDO carries the new value from now on."""
-        if key in self._out:
-            self._out[key] = value
+        self._set_out(key, value)
+
+    def _set_out(self, key: ObjectKey, value: int) -> None:
+        """An object's value in every RxPDO that carries it (none: no-op)."""
+        for i, j in self._out_at.get(key, ()):
+            self._out_vals[i][j] = value
 
     def clear_error(self) -> None:
         self.error = None
@@ -485,15 +520,15 @@ class Axis:
         """A command from a controller, checked again now that it is applied."""
         problem = command_problem(self, kind, value)
         if problem:
-            self.counters["refused_commands"] += 1
+            self._count("refused_commands")
             self.last_refusal = problem
             return fail(problem)
         value, clipped = saturate(self.limits, kind, float(value))
         if clipped:
-            self.counters["clipped_commands"] += 1
+            self._count("clipped_commands")
         raw, err = self.converter.convert(kind, value, self.env)
         if err:
-            self.counters["refused_commands"] += 1
+            self._count("refused_commands")
             self.last_refusal = err
             return fail(err)
         self.command_kind = kind
@@ -565,7 +600,7 @@ class Axis:
                 return bits
             self._ppm_stage = 0
         if self._ppm_pending is not None:
-            self._out[TARGET_POSITION] = self._ppm_pending
+            self._set_out(TARGET_POSITION, self._ppm_pending)
             self._ppm_pending = None
             self._ppm_stage = 3
         return bits
@@ -574,7 +609,6 @@ class Axis:
         """Fill the RxPDOs from this axis's own fields and send those that
         changed; the controlword PDO and the cyclic target's PDO go out
         every cycle."""
-        out = self._out
         mode = mode_of(self.active_mode)
         cyclic_rx = -1
         if mode is not None and mode.cyclic:
@@ -589,13 +623,14 @@ class Axis:
                     else:
                         self.command_raw = raw
                 if not self.halted:
-                    out[TARGET_OF_KIND[kind]] = self.command_raw
+                    self._set_out(TARGET_OF_KIND[kind], self.command_raw)
             cyclic_rx = self._cyclic_rx.get(TARGET_OF_KIND[kind], -1)
         elif mode is not None and mode.command_kind == "velocity" and self.command_kind == "velocity" \
                 and not self.halted:
-            out[TARGET_VELOCITY] = self.command_raw
+            self._set_out(TARGET_VELOCITY, self.command_raw)
         cw = self._controlword()
-        out[CONTROLWORD] = cw
+        for i, j in self._out_at[CONTROLWORD]:
+            self._out_vals[i][j] = cw
         self._last_cw = cw
         # The controlword PDO goes out every cycle, as with ros_canopen, so
         # drive and master stay in step even if a frame was lost; the cyclic
@@ -604,8 +639,9 @@ class Axis:
         self._tick += 1
         refresh = self._tick % REFRESH_CYCLES == 0
         last = self._rx_last
+        vals = self._out_vals
         for i, rpdo in enumerate(self._rx):
-            data = rpdo.encode(out)
+            data = rpdo.pack(vals[i])
             if data != last[i] or i == self._cw_rx or i == cyclic_rx or refresh:
                 last[i] = data
                 send(rpdo.cob_id, data)
@@ -620,15 +656,22 @@ class Axis:
             self.statusword, self.state, self.mode_display, self.active_mode, self.nmt_state, self.error,
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
             self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
-            self.command_value, self.last_refusal, MappingProxyType(dict(self.readings)),
-            MappingProxyType(dict(self.counters)), self.limits, self.plan, self.status_seen_cycle)
+            self.command_value, self.last_refusal,
+            tuple((t.keys, v) for t, v in zip(self._tx, self._tx_vals) if v is not None),
+            self._counters(), self.limits, self.plan, self.status_seen_cycle)
+
+    def _counters(self) -> Mapping[str, int]:
+        view = self._counters_view
+        if view is None:
+            view = self._counters_view = MappingProxyType(dict(self.counters))
+        return view
 
 
 def initial_snapshot(cfg: NodeConfig, plan: NodePlan, limits: JointLimits) -> AxisSnapshot:
     """What status shows for an axis before the first init."""
     return AxisSnapshot(cfg.name, cfg.node_id, cfg.key, math.nan, math.nan, math.nan, 0, 0, None, 0, None,
                         "UNKNOWN", None, False, False, False, False, None, None, "", 0, 0, False, None, math.nan,
-                        "", MappingProxyType({}), MappingProxyType({}), limits, plan, 0)
+                        "", (), MappingProxyType({}), limits, plan, 0)
 
 
 def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> Dict[str, float]:

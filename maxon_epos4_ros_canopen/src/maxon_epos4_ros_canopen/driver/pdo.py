@@ -57,6 +57,10 @@ class RxPdo:
     def encode(self, values: Dict[ObjectKey, int]) -> bytes:
         return self._st.pack(*[values[k] for k in self.keys])
 
+    def pack(self, values: Sequence[int]) -> bytes:
+        """The frame for values given in the order of ``keys``."""
+        return self._st.pack(*values)
+
 
 class TxPdo:
     """One PDO the drive sends; decode() refuses a frame of the wrong length."""
