@@ -253,6 +253,7 @@ class Axis:
         self._cyclic_rx: Dict[ObjectKey, int] = {}
         self._cw_rx = -1
         self._fresh_after = 0.0
+        self._emcy_logged = -1e9
         self._display_mapped = True
 
     # ---------------------------------------------------------- binding
@@ -274,7 +275,11 @@ class Axis:
         for i, t in enumerate(self._tx):
             for j, key in enumerate(t.keys):
                 self._in_at.setdefault(key, (i, j))
-        self._set_out(CONTROLWORD, 0)
+        # The controlword the drive has now (read by SDO): a node recover
+        # configured without a reset may be enabled, and must stay so until
+        # the driver asks for another state.
+        first_cw = int(binding.initial_out.get(CONTROLWORD, 0)) & ~cia402.CW_FAULT_RESET_BIT
+        self._set_out(CONTROLWORD, first_cw)
         if self.active_mode is not None:
             self._set_out(MODES_OF_OPERATION, self.active_mode)
         self._sw_at = self._in_at[STATUSWORD]
@@ -311,7 +316,7 @@ class Axis:
         self.rebooted = False
         self.target_state = None
         self.held_state = None
-        self._last_cw = 0
+        self._last_cw = first_cw
         self._ppm_pending = None
         self._ppm_stage = 0
         self.attached = True
@@ -472,7 +477,7 @@ class Axis:
         if state == 0 and self.ready:
             self.rebooted = True
 
-    def on_emcy(self, data: bytes) -> None:
+    def on_emcy(self, data: bytes, now: float = 0.0) -> None:
         if len(data) < 3:
             self._count("bad_emcy")
             return
@@ -481,8 +486,13 @@ class Axis:
         if code == 0:
             log.info("%s (node %d): EMCY error reset", self.name, self.node_id)
             return
-        self.last_emcy = "%s (error register 0x%02X)" % (describe_error(code), data[2])
-        log.error("%s (node %d): EMCY %s", self.name, self.node_id, self.last_emcy)
+        text = "%s (error register 0x%02X)" % (describe_error(code), data[2])
+        # A storm of EMCYs (a drive in trouble, or forged frames) must not
+        # turn into a storm of log lines: each text at most once a second.
+        if text != self.last_emcy or now - self._emcy_logged > 1.0:
+            self._emcy_logged = now
+            log.error("%s (node %d): EMCY %s", self.name, self.node_id, text)
+        self.last_emcy = text
 
     # --------------------------------------------------------- requests
     def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:

@@ -54,7 +54,7 @@ from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGE
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
-NMT_START, NMT_STOP, NMT_RESET_NODE = 0x01, 0x02, 0x81
+NMT_START, NMT_STOP, NMT_ENTER_PRE_OPERATIONAL, NMT_RESET_NODE = 0x01, 0x02, 0x80, 0x81
 _PDO_MISSING_CYCLES = 50
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
@@ -174,6 +174,25 @@ class _Heartbeat:
 class _Emcy:
     node_id: int
     data: bytes
+    time: float
+
+
+class _ReceiveErrors(can.Listener):
+    """Handles the CAN notifier's receive errors: logged (at most once a
+    second) and waited out, so its reader thread keeps running."""
+
+    def __init__(self) -> None:
+        self._logged = 0.0
+
+    def on_message_received(self, msg: can.Message) -> None:
+        pass
+
+    def on_error(self, exc: Exception) -> None:
+        now = time.monotonic()
+        if now - self._logged > 1.0:
+            self._logged = now
+            log.error("CAN receive error: %s", exc)
+        time.sleep(0.1)  # a downed interface fails every read at once
 
 
 class DriverSnapshot(NamedTuple):
@@ -391,7 +410,7 @@ class Driver:
         elif kind is _Emcy:
             axis = self._by_node_id.get(m.node_id)
             if axis is not None:
-                axis.on_emcy(m.data)
+                axis.on_emcy(m.data, m.time)
         elif kind is _StateRequest:
             for name in m.axes:
                 self._axis[name].request_state(m.state, m.fault_reset)
@@ -439,6 +458,10 @@ class Driver:
                 raise _InitError("cannot open CAN device %r: %s" % (self.config.bus.device, e)) from None
         network = canopen.Network(self.bus)
         network.connect()
+        # python-can's notifier ends its reader thread on the first receive
+        # error (an interface going down) unless a listener handles it; this
+        # one does, so reception resumes when the interface is up again.
+        network.notifier.add_listener(_ReceiveErrors())
         self.network = network
         self._receiver = receiver = TpdoReceiver([m.cob_id for node in self._nodes.values()
                                                   for m in enabled_maps(node.plan.tx)])
@@ -469,7 +492,7 @@ class Driver:
                 inbox.put(_Heartbeat(can_id - 0x700, payload, time.monotonic()))
 
             def on_emcy(can_id: int, data: Any, _ts: float) -> None:
-                inbox.put(_Emcy(can_id - 0x80, bytes(data)))
+                inbox.put(_Emcy(can_id - 0x80, bytes(data), time.monotonic()))
             network.subscribe(0x700 + nid, on_heartbeat)
             network.subscribe(0x80 + nid, on_emcy)
         self._sdo = MappingProxyType(sdo)
@@ -740,15 +763,21 @@ class Driver:
         return int(self._upload(name, POSITION_ACTUAL))
 
     # ============================================================== init
-    def _configure(self, name: str) -> Binding:
-        """NMT reset, then everything the plan says, over SDO (pre-operational)."""
+    def _configure(self, name: str, reset: bool = True) -> Binding:
+        """NMT reset (init) or enter pre-operational (recover: a reset would
+        lose the drive's position counter), then everything the plan says,
+        over SDO."""
         node = self._nodes[name]
         nid = node.cfg.node_id
-        boot = self._boot[nid]
-        boot.clear()
-        self._nmt(NMT_RESET_NODE, nid)
-        if not boot.wait(self.boot_timeout):
-            raise _InitError("%s (node %d): no boot-up within %g s after NMT reset" % (name, nid, self.boot_timeout))
+        if reset:
+            boot = self._boot[nid]
+            boot.clear()
+            self._nmt(NMT_RESET_NODE, nid)
+            if not boot.wait(self.boot_timeout):
+                raise _InitError("%s (node %d): no boot-up within %g s after NMT reset"
+                                 % (name, nid, self.boot_timeout))
+        else:
+            self._nmt(NMT_ENTER_PRE_OPERATIONAL, nid)
         step = "configuration"
         try:
             for w in node.plan.writes:
