@@ -9,7 +9,7 @@ import os
 import subprocess
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import can
 import canopen
@@ -81,8 +81,65 @@ class SdoProbe:
                 time.sleep(0.5)
         raise AssertionError("SDO read of node %d 0x%04X/%d failed: %s" % (node_id, index, subindex, last))
 
+    def velocity(self, node_id: int) -> int:
+        """0x606C velocity actual value."""
+        return self.read(node_id, 0x606C, signed=True)
+
+    def position(self, node_id: int) -> int:
+        """0x6064 position actual value."""
+        return self.read(node_id, 0x6064, signed=True)
+
     def close(self) -> None:
         self.network.disconnect()
+
+
+class DiagnosticsWatch:
+    """Every /diagnostics status of the joints, with the time it arrived, so a
+    test can ask when a condition first showed (detection time)."""
+
+    def __init__(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        self._lock = threading.Lock()
+        self._history: Dict[str, List[Any]] = {}
+        self._sub = rospy.Subscriber("/diagnostics", DiagnosticArray, self._cb, queue_size=50)
+
+    def _cb(self, msg: Any) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for status in msg.status:
+                joint = status.name.split(":")[-1].strip()
+                entries = self._history.setdefault(joint, [])
+                entries.append((now, {v.key: v.value for v in status.values}))
+                del entries[:-2000]
+
+    def latest(self, joint: str) -> Dict[str, str]:
+        with self._lock:
+            entries = self._history.get(joint) or [(0.0, {})]
+            return dict(entries[-1][1])
+
+    def first_since(self, joint: str, since: float, condition: Callable[[Dict[str, str]], bool],
+                    timeout: float = WAIT) -> Tuple[float, Dict[str, str]]:
+        """(arrival time, values) of the first status of `joint` that arrived
+        after `since` (time.monotonic()) and meets `condition`."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                for stamp, values in self._history.get(joint, []):
+                    if stamp >= since and condition(values):
+                        return stamp, values
+            if time.monotonic() > deadline:
+                raise AssertionError("diagnostics of %s never met the condition; latest %r"
+                                     % (joint, self.latest(joint)))
+            time.sleep(0.05)
+
+
+def driver_pid(pattern: str = "canopen_motor_node") -> int:
+    """Process id of the driver node (the one process whose command line has `pattern`)."""
+    proc = run(["pgrep", "-f", pattern])
+    pids = [int(p) for p in proc.stdout.split() if int(p) != os.getpid()]
+    if len(pids) != 1:
+        raise AssertionError("expected one %s process, found %r" % (pattern, pids))
+    return pids[0]
 
 
 class BusRecorder:
