@@ -133,6 +133,22 @@ class DiagnosticsWatch:
             time.sleep(0.05)
 
 
+def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeout: float = WAIT) -> None:
+    """Wait until the controller manager lists every controller in `names`
+    as running. Tests wait for this before their own SDO reads: the spawner's
+    mode switch uses the drives' one SDO channel, and a second client's
+    answers on it break that switch."""
+    from controller_manager_msgs.srv import ListControllers
+    rospy.wait_for_service(ns + "/controller_manager/list_controllers", timeout=timeout)
+    proxy = rospy.ServiceProxy(ns + "/controller_manager/list_controllers", ListControllers)
+
+    def running() -> bool:
+        states = {c.name.split("/")[-1]: c.state for c in proxy().controller}
+        return all(states.get(n.split("/")[-1]) == "running" for n in names)
+
+    wait_until(running, "controllers %s running" % ", ".join(names), timeout=timeout)
+
+
 def driver_pid(pattern: str = "canopen_motor_node") -> int:
     """Process id of the driver node (the one process whose command line has `pattern`)."""
     proc = run(["pgrep", "-f", pattern])
