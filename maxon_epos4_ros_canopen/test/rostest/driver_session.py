@@ -133,20 +133,38 @@ class DiagnosticsWatch:
             time.sleep(0.05)
 
 
-def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeout: float = WAIT) -> None:
+def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeout: float = WAIT,
+                                 attempts: int = 3) -> None:
     """Wait until the controller manager lists every controller in `names`
     as running. Tests wait for this before their own SDO reads: the spawner's
     mode switch uses the drives' one SDO channel, and a second client's
-    answers on it break that switch."""
-    from controller_manager_msgs.srv import ListControllers
+    answers on it break that switch. When the spawner could not start them
+    (a drive in error right after init), `driver/recover` and start them as
+    the spawner does, up to `attempts` times."""
+    from controller_manager_msgs.srv import ListControllers, SwitchController
+    from std_srvs.srv import Trigger
     rospy.wait_for_service(ns + "/controller_manager/list_controllers", timeout=timeout)
-    proxy = rospy.ServiceProxy(ns + "/controller_manager/list_controllers", ListControllers)
+    listing = rospy.ServiceProxy(ns + "/controller_manager/list_controllers", ListControllers)
+    switch = rospy.ServiceProxy(ns + "/controller_manager/switch_controller", SwitchController)
+    recover = rospy.ServiceProxy(ns + "/driver/recover", Trigger)
+    wanted = [n.split("/")[-1] for n in names]
 
-    def running() -> bool:
-        states = {c.name.split("/")[-1]: c.state for c in proxy().controller}
-        return all(states.get(n.split("/")[-1]) == "running" for n in names)
+    def stopped() -> List[str]:
+        states = {c.name.split("/")[-1]: (c.name, c.state) for c in listing().controller}
+        return [states[n][0] if n in states else n for n in wanted if states.get(n, ("", ""))[1] != "running"]
 
-    wait_until(running, "controllers %s running" % ", ".join(names), timeout=timeout)
+    for attempt in range(attempts):
+        try:
+            wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names),
+                       timeout=timeout if attempt == 0 else 20.0)
+            return
+        except AssertionError:
+            missing = stopped()
+            answer = recover()
+            print("controllers %s not running (attempt %d); recover: %s %r"
+                  % (missing, attempt + 1, answer.success, answer.message), flush=True)
+            switch(start_controllers=missing, stop_controllers=[], strictness=1, start_asap=False, timeout=0.0)
+    wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names), timeout=20.0)
 
 
 def driver_pid(pattern: str = "canopen_motor_node") -> int:
@@ -159,10 +177,12 @@ def driver_pid(pattern: str = "canopen_motor_node") -> int:
 
 
 class BusRecorder:
-    """Keeps every frame seen on the bus between start() and stop()."""
+    """Keeps every frame seen on the bus between start() and stop() (only
+    those `can_filters` pass when given: the kernel filters, so a busy bus
+    does not overflow the socket with frames nobody counts)."""
 
-    def __init__(self, device: str) -> None:
-        self.bus = can.Bus(interface="socketcan", channel=device)
+    def __init__(self, device: str, can_filters: Optional[List[Dict[str, Any]]] = None) -> None:
+        self.bus = can.Bus(interface="socketcan", channel=device, can_filters=can_filters)
         self.frames: List[can.Message] = []
         self._lock = threading.Lock()
         self._running = False
