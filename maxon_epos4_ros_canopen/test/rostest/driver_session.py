@@ -10,7 +10,7 @@ import socket
 import subprocess
 import threading
 import time
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import can
 import canopen
@@ -83,15 +83,108 @@ class SdoProbe:
                 time.sleep(0.5)
         raise AssertionError("SDO read of node %d 0x%04X/%d failed: %s" % (node_id, index, subindex, last))
 
+    def velocity(self, node_id: int) -> int:
+        """0x606C velocity actual value."""
+        return self.read(node_id, 0x606C, signed=True)
+
+    def position(self, node_id: int) -> int:
+        """0x6064 position actual value."""
+        return self.read(node_id, 0x6064, signed=True)
+
     def close(self) -> None:
         self.network.disconnect()
 
 
-class BusRecorder:
-    """Keeps every frame seen on the bus between start() and stop()."""
+class DiagnosticsWatch:
+    """Every /diagnostics status of the joints, with the time it arrived, so a
+    test can ask when a condition first showed (detection time)."""
 
-    def __init__(self, device: str) -> None:
-        self.bus = can.Bus(interface="socketcan", channel=device)
+    def __init__(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        self._lock = threading.Lock()
+        self._history: Dict[str, List[Any]] = {}
+        self._sub = rospy.Subscriber("/diagnostics", DiagnosticArray, self._cb, queue_size=50)
+
+    def _cb(self, msg: Any) -> None:
+        now = time.monotonic()
+        with self._lock:
+            for status in msg.status:
+                joint = status.name.split(":")[-1].strip()
+                entries = self._history.setdefault(joint, [])
+                entries.append((now, {v.key: v.value for v in status.values}))
+                del entries[:-2000]
+
+    def latest(self, joint: str) -> Dict[str, str]:
+        with self._lock:
+            entries = self._history.get(joint) or [(0.0, {})]
+            return dict(entries[-1][1])
+
+    def first_since(self, joint: str, since: float, condition: Callable[[Dict[str, str]], bool],
+                    timeout: float = WAIT) -> Tuple[float, Dict[str, str]]:
+        """(arrival time, values) of the first status of `joint` that arrived
+        after `since` (time.monotonic()) and meets `condition`."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._lock:
+                for stamp, values in self._history.get(joint, []):
+                    if stamp >= since and condition(values):
+                        return stamp, values
+            if time.monotonic() > deadline:
+                raise AssertionError("diagnostics of %s never met the condition; latest %r"
+                                     % (joint, self.latest(joint)))
+            time.sleep(0.05)
+
+
+def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeout: float = WAIT,
+                                 attempts: int = 3) -> None:
+    """Wait until the controller manager lists every controller in `names`
+    as running. Tests wait for this before their own SDO reads: the spawner's
+    mode switch uses the drives' one SDO channel, and a second client's
+    answers on it break that switch. When the spawner could not start them
+    (a drive in error right after init), `driver/recover` and start them as
+    the spawner does, up to `attempts` times."""
+    from controller_manager_msgs.srv import ListControllers, SwitchController
+    from std_srvs.srv import Trigger
+    rospy.wait_for_service(ns + "/controller_manager/list_controllers", timeout=timeout)
+    listing = rospy.ServiceProxy(ns + "/controller_manager/list_controllers", ListControllers)
+    switch = rospy.ServiceProxy(ns + "/controller_manager/switch_controller", SwitchController)
+    recover = rospy.ServiceProxy(ns + "/driver/recover", Trigger)
+    wanted = [n.split("/")[-1] for n in names]
+
+    def stopped() -> List[str]:
+        states = {c.name.split("/")[-1]: (c.name, c.state) for c in listing().controller}
+        return [states[n][0] if n in states else n for n in wanted if states.get(n, ("", ""))[1] != "running"]
+
+    for attempt in range(attempts):
+        try:
+            wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names),
+                       timeout=timeout if attempt == 0 else 20.0)
+            return
+        except AssertionError:
+            missing = stopped()
+            answer = recover()
+            print("controllers %s not running (attempt %d); recover: %s %r"
+                  % (missing, attempt + 1, answer.success, answer.message), flush=True)
+            switch(start_controllers=missing, stop_controllers=[], strictness=1, start_asap=False, timeout=0.0)
+    wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names), timeout=20.0)
+
+
+def driver_pid(pattern: str = "canopen_motor_node") -> int:
+    """Process id of the driver node (the one process whose command line has `pattern`)."""
+    proc = run(["pgrep", "-f", pattern])
+    pids = [int(p) for p in proc.stdout.split() if int(p) != os.getpid()]
+    if len(pids) != 1:
+        raise AssertionError("expected one %s process, found %r" % (pattern, pids))
+    return pids[0]
+
+
+class BusRecorder:
+    """Keeps every frame seen on the bus between start() and stop() (only
+    those `can_filters` pass when given: the kernel filters, so a busy bus
+    does not overflow the socket with frames nobody counts)."""
+
+    def __init__(self, device: str, can_filters: Optional[List[Dict[str, Any]]] = None) -> None:
+        self.bus = can.Bus(interface="socketcan", channel=device, can_filters=can_filters)
         # The kernel charges each buffered CAN frame near 1 KiB: with the
         # default receive buffer a reader that falls 1 s behind on a loaded
         # host (user-mode Linux) loses frames. Room for minutes of traffic.
