@@ -81,7 +81,8 @@ class AxisSnapshot(NamedTuple):
     command_kind: Optional[str]
     command_value: float
     last_refusal: str
-    tpdo_values: Tuple[Tuple[Tuple[ObjectKey, ...], Tuple[Any, ...]], ...]  # per TPDO received: keys, values
+    tpdo_keys: Tuple[Tuple[ObjectKey, ...], ...]          # per TPDO: its objects
+    tpdo_values: Tuple[Optional[Tuple[Any, ...]], ...]    # per TPDO: the latest values (None: none yet)
     counters: Mapping[str, int]
     limits: JointLimits
     plan: NodePlan
@@ -95,7 +96,8 @@ class AxisSnapshot(NamedTuple):
     @property
     def readings(self) -> Dict[ObjectKey, Any]:
         """object -> latest value of every TPDO-mapped object received."""
-        return {k: v for keys, values in self.tpdo_values for k, v in zip(keys, values)}
+        return {k: v for keys, values in zip(self.tpdo_keys, self.tpdo_values) if values is not None
+                for k, v in zip(keys, values)}
 
     def mode_name(self) -> str:
         return cia402.mode_name(self.mode_display)
@@ -238,6 +240,7 @@ class Axis:
         self._tx: Tuple[TxPdo, ...] = ()
         self._tx_last: List[Any] = []
         self._tx_vals: List[Optional[Tuple[Any, ...]]] = []
+        self._tx_keys: Tuple[Tuple[ObjectKey, ...], ...] = ()
         self._rx_last: List[bytes] = []
         self._status_pdo = -1
         # Where each object sits, worked out at attach so the cycle indexes
@@ -263,6 +266,7 @@ class Axis:
         self._rx, self._tx = binding.rx, binding.tx
         self._tx_last = [None] * len(self._tx)
         self._tx_vals = [None] * len(self._tx)
+        self._tx_keys = tuple(t.keys for t in self._tx)
         self._fresh_after = binding.configured_at
         self._rx_last = [b""] * len(self._rx)
         self._out_vals = [[int(binding.initial_out.get(k, 0)) for k in r.keys] for r in self._rx]
@@ -667,7 +671,7 @@ class Axis:
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
             self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
             self.command_value, self.last_refusal,
-            tuple((t.keys, v) for t, v in zip(self._tx, self._tx_vals) if v is not None),
+            self._tx_keys, tuple(self._tx_vals),
             self._counters(), self.limits, self.plan, self.status_seen_cycle)
 
     def _counters(self) -> Mapping[str, int]:
@@ -681,7 +685,7 @@ def initial_snapshot(cfg: NodeConfig, plan: NodePlan, limits: JointLimits) -> Ax
     """What status shows for an axis before the first init."""
     return AxisSnapshot(cfg.name, cfg.node_id, cfg.key, math.nan, math.nan, math.nan, 0, 0, None, 0, None,
                         "UNKNOWN", None, False, False, False, False, None, None, "", 0, 0, False, None, math.nan,
-                        "", (), MappingProxyType({}), limits, plan, 0)
+                        "", (), (), MappingProxyType({}), limits, plan, 0)
 
 
 def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> Dict[str, float]:
