@@ -30,7 +30,7 @@ from ..result import Result, fail, ok
 from ..units import Expression, object_variable_name
 from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL,
                     PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
-                    TARGET_VELOCITY, Mode, mode_of)
+                    TARGET_VELOCITY, mode_of)
 from .pdo import RxPdo, TpdoReceiver, TxPdo
 from .plan import NodePlan
 
