@@ -18,7 +18,7 @@ import logging
 import math
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Tuple
 
 from .. import cia402
 from ..cia402 import State
@@ -660,9 +660,6 @@ class Axis:
                 last[i] = data
                 send(rpdo.cob_id, data)
 
-    def resend_all(self) -> None:
-        self._rx_last = [b""] * len(self._rx)
-
     # --------------------------------------------------------- snapshot
     def snapshot(self) -> AxisSnapshot:
         return AxisSnapshot(
@@ -696,7 +693,3 @@ def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> D
         env[object_variable_name(key)] = value
     env["pos"], env["vel"], env["eff"] = snapshot.position, snapshot.velocity, snapshot.effort
     return env
-
-
-def snapshot_of(axes: Sequence[Axis]) -> Dict[str, AxisSnapshot]:
-    return {a.name: a.snapshot() for a in axes}

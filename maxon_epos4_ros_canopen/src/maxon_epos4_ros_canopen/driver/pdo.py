@@ -54,9 +54,6 @@ class RxPdo:
         self.cob_id = plan.cob_id
         self._st, self.keys = _layout(od, plan.entries)
 
-    def encode(self, values: Dict[ObjectKey, int]) -> bytes:
-        return self._st.pack(*[values[k] for k in self.keys])
-
     def pack(self, values: Sequence[int]) -> bytes:
         """The frame for values given in the order of ``keys``."""
         return self._st.pack(*values)
