@@ -519,3 +519,34 @@ def test_node_stopped_by_someone_else_is_an_error(rig):
     assert "left OPERATIONAL" in d.joints[J1].error
     assert d.recover().success
     assert rig.state() == State.OPERATION_ENABLED
+
+
+def _stop_by_nmt(rig, command):
+    rig.sniffer.send(can.Message(arbitration_id=0x000, data=bytes([command, 1]), is_extended_id=False))
+
+
+@pytest.mark.parametrize("fault", ["silent", "heartbeat_stop", "nmt_stop", "nmt_pre_operational"])
+def test_recover_of_a_node_that_did_not_reboot_keeps_its_position(rig, fault):
+    """Only a boot-up says a drive lost its position counter: a node that went
+    silent, stopped its heartbeat or was put in STOPPED/PRE-OPERATIONAL by
+    someone else is configured again without an NMT reset, so recover does
+    not move its position (an NMT reset restarts the counter)."""
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "100"}})
+    assert d.set_command(J1, "position", 40000).success
+    assert until(lambda: abs(rig.read(0x6064) - 40000) < 5, 10.0)
+    if fault in ("silent", "heartbeat_stop"):
+        rig.sim.inject_fault(1, fault)
+    else:
+        _stop_by_nmt(rig, 0x02 if fault == "nmt_stop" else 0x80)
+    assert until(lambda: d.joints[J1].error is not None)
+    rig.sim.inject_fault(1, "clear")
+    assert until(lambda: rig.sim.call(lambda: rig.sim.nodes[1].silent_until is None))
+    r = d.recover()
+    assert r.success, r.message
+    assert "reference" not in r.message
+    assert rig.state() == State.OPERATION_ENABLED
+    assert abs(rig.read(0x6064) - 40000) < 50, rig.read(0x6064)
+    assert rig.read(0x607A) == 40000 or abs(rig.read(0x607A) - rig.read(0x6064)) < 50
+    # and it takes commands again from where it is
+    assert d.set_command(J1, "position", 41000).success
+    assert until(lambda: abs(rig.read(0x6064) - 41000) < 5, 10.0)

@@ -249,3 +249,25 @@ def test_eight_threads_for_15_seconds_lose_no_command(rig):
     assert until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
         last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2))
     assert d.joints[J1].error is None and d.joints[J2].error is None
+
+
+def test_a_receive_error_does_not_poison_later_sdo_and_nmt(rig):
+    """A downed interface fails the notifier's read (SocketCAN: ENETDOWN).
+    Once it is up again, SDO and NMT must work: canopen's Network re-raises
+    the notifier's last receive error on every send unless it is cleared."""
+    d = ppm_ready(rig)
+    real_recv = d.bus.recv
+    failed = threading.Event()
+
+    def recv_failing_once(timeout=None):
+        if not failed.is_set():
+            failed.set()
+            raise can.CanOperationError("Error receiving: Network is down", 100)
+        return real_recv(timeout)
+    d.bus.recv = recv_failing_once
+    assert failed.wait(5.0)
+    assert until(lambda: d.get_object(J1, "6064").success)
+    assert d.halt().success
+    r = d.recover()
+    assert r.success, r.message
+    assert rig.state() == State.OPERATION_ENABLED

@@ -10,7 +10,7 @@ import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
 from maxon_epos4_ros_canopen.config import load_config
-from maxon_epos4_ros_canopen.driver.axis import REFRESH_CYCLES, Axis, Binding
+from maxon_epos4_ros_canopen.driver.axis import REFRESH_CYCLES, Axis, Binding, holding_controlword
 from maxon_epos4_ros_canopen.driver.pdo import RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from maxon_epos4_ros_canopen.driver.plan import plan_node
 from maxon_epos4_ros_canopen.limits import JointLimits
@@ -122,9 +122,9 @@ def test_leaving_the_reached_state_is_an_error_not_a_retry(h):
     assert j.error and "quick_stop_active" in j.error
     assert j.target_state is None and j.halted
     h.cycle(sw=SW_SWITCH_ON_DISABLED)
-    # holds the state it reached, with the halt bit: neither re-enables by
-    # itself (no shutdown 0x0006) nor cuts the power of a drive that may move
-    assert h.controlword() == 0x010F
+    # quick stop: neither re-enables by itself (no shutdown 0x0006, no enable
+    # operation) nor cuts the power of a drive that may move (no 0x0000)
+    assert h.controlword() == 0x0002
 
 
 def ppm_enabled(h):
@@ -281,3 +281,50 @@ def test_readings_are_nan_until_the_tpdo_a_conversion_reads_has_come():
     h.payload[0x381] = struct.pack("<ii", 1234, 0)
     h.cycle()
     assert h.axis.position == 1234
+
+
+@pytest.mark.parametrize("sw, cw", [(SW_SWITCH_ON_DISABLED, 0x0000), (SW_READY, 0x0006), (SW_SWITCHED_ON, 0x0007),
+                                    (SW_ENABLED, 0x000F), (SW_QUICK_STOP, 0x0002), (SW_FAULT, 0x0000),
+                                    (0x0018, 0x0000)])
+def test_the_first_controlword_holds_the_state_the_drive_is_in(sw, cw):
+    # a drive its consumer quick-stopped still has 0x000F in 0x6040: sending
+    # that again would re-enable it, so the state decides, never 0x6040
+    assert holding_controlword(sw) == cw
+
+
+def walk_to_enabled(h):
+    h.axis.request_state(State.OPERATION_ENABLED)
+    for sw in (SW_SWITCH_ON_DISABLED, SW_READY, SW_SWITCHED_ON, SW_ENABLED):
+        h.cycle(sw=sw)
+    assert h.axis.held_state == State.OPERATION_ENABLED
+
+
+@pytest.mark.parametrize("sw", [SW_QUICK_STOP, SW_SWITCHED_ON, SW_READY, SW_SWITCH_ON_DISABLED])
+def test_a_drive_that_stopped_on_its_own_is_never_enabled_again_by_the_driver(h, sw):
+    """A drive its own consumer (0x6007) or input quick-stopped must stay
+    stopped: enable operation (0x000F, halted or not) would take Quick Stop
+    Active back to Operation Enabled (transition 16, option codes 5-8) and
+    Switched On to Operation Enabled. Quick stop is no transition in any of
+    these states, and on a drive that is still enabled (a lying frame) it
+    is a ramp to rest, never a coast."""
+    walk_to_enabled(h)
+    for _ in range(5):
+        h.cycle(sw=sw)
+        assert h.controlword() & 0x0F != 0x0F, hex(h.controlword())
+    assert h.controlword() & 0x8F == 0x0002
+    assert h.axis.error
+
+
+def test_after_clearing_an_error_the_first_controlword_holds_what_the_drive_said_by_sdo(h):
+    """recover clears an error while PDOs may be stale (a drive that left
+    OPERATIONAL sent none): until a fresh statusword comes, the controlword
+    holds the state read over SDO, not the one held before the error."""
+    walk_to_enabled(h)
+    h.axis.set_error("bus error")
+    h.cycle(sw=SW_ENABLED)
+    h.axis.clear_error(SW_QUICK_STOP)
+    h.axis.request_state(State.OPERATION_ENABLED, fault_reset=True)
+    h.axis.write(lambda cob, data: h.last.update({cob: data}))   # before any fresh statusword
+    assert h.controlword() & 0x8F == 0x0002
+    h.cycle(sw=SW_QUICK_STOP)
+    assert h.controlword() == 0x0000  # the walk to enable starts from quick stop active

@@ -187,3 +187,21 @@ def test_reset_communication_restores_the_dcf_entries(rig):
     frames = rig.collect(5 * TIMEOUT_MS / 1000.0)
     assert not [m for m in frames if _is_emcy(m)]
     assert node.sdo[0x6041].raw & 0x6F == 0x27
+
+
+def test_a_drive_cut_off_the_bus_stops_on_its_own(rig):
+    """A silent drive hears no heartbeat either: its consumer trips while it
+    is cut off, and it ramps to rest before anyone can talk to it again (the
+    EMCY is lost, nobody hears it)."""
+    node = rig.remote(1)
+    _watch_master(node)
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.sim.inject_fault(1, "silent")
+    assert rig.wait(lambda: rig.sim.read(1, 0x606C) == 0)
+    assert rig.sim.read(1, 0x6041) & 0x6F == 0x07  # quick stop active (0x6007 = 3)
+    rig.drain()
+    rig.sim.inject_fault(1, "clear")
+    assert rig.wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x07)
+    assert not [m for m in rig.collect(0.2) if _is_emcy(m)]
+    master.stop()

@@ -48,6 +48,21 @@ _HOLD = {
     State.OPERATION_ENABLED: cia402.CW_ENABLE_OPERATION,
     State.QUICK_STOP_ACTIVE: cia402.CW_QUICK_STOP,
 }
+
+
+def holding_controlword(statusword: int) -> int:
+    """The controlword that keeps a drive in the state its statusword shows:
+    what the driver sends before it has decided anything. Never the drive's
+    last controlword (0x6040): a drive its own fault reaction or consumer
+    brought to Quick Stop Active still holds "enable operation" there, and
+    sending that again would re-enable it (transition 16)."""
+    try:
+        state = cia402.state_from_statusword(statusword)
+    except ValueError:
+        return cia402.CW_DISABLE_VOLTAGE
+    return _HOLD.get(state, cia402.CW_DISABLE_VOLTAGE)
+
+
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
@@ -217,6 +232,11 @@ class Axis:
         self.rebooted = False
         # what the driver works towards
         self.target_state: Optional[State] = None
+        self._confirm_after = 0  # status_seen_cycle when target_state was requested
+        # The drive left the held state on its own for a state that is no
+        # fault: the driver holds it with quick stop until asked otherwise
+        # (see _hold_cw).
+        self.stopped_by_drive = False
         self.held_state: Optional[State] = None  # the state last reached on request
         self.fault_reset = False
         self.active_mode: Optional[int] = None
@@ -279,9 +299,10 @@ class Axis:
         for i, t in enumerate(self._tx):
             for j, key in enumerate(t.keys):
                 self._in_at.setdefault(key, (i, j))
-        # The controlword the drive has now (read by SDO): a node recover
-        # configured without a reset may be enabled, and must stay so until
-        # the driver asks for another state.
+        # The controlword that holds the state the drive was in when it was
+        # configured (holding_controlword): a node recover configured
+        # without a reset may be enabled, and must stay so, and no more,
+        # until the driver asks for another state.
         first_cw = int(binding.initial_out.get(CONTROLWORD, 0)) & ~cia402.CW_FAULT_RESET_BIT
         self._set_out(CONTROLWORD, first_cw)
         if self.active_mode is not None:
@@ -383,7 +404,7 @@ class Axis:
         if state is None:
             return
         if target is not None:
-            if state == target:
+            if state == target and self.status_seen_cycle > self._confirm_after:
                 self.target_state = None
                 self.held_state = state
                 if state != State.FAULT:
@@ -402,6 +423,8 @@ class Axis:
         # frame that lies): report it and stop with the drive's own means;
         # never cut the power of a drive that may be moving.
         what = "fault" if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else state.value
+        if what != "fault":
+            self.stopped_by_drive = True
         self.set_error("drive left %s, now %s%s" % (held.value, what, self._emcy_suffix() if what == "fault" else ""))
 
     def _emcy_suffix(self) -> str:
@@ -502,6 +525,11 @@ class Axis:
     def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
         self.target_state = state
         self.fault_reset = fault_reset
+        self.stopped_by_drive = False
+        # Only a statusword that comes after the request confirms it: the
+        # last one may be stale (a drive that left PDO exchange quick-stopped
+        # meanwhile) and would end the request at once.
+        self._confirm_after = self.status_seen_cycle
 
     def mode_confirmed(self, number: int) -> None:
         """0x6061 read by SDO (modes display not mapped to a TPDO)."""
@@ -523,11 +551,19 @@ class Axis:
         for i, j in self._out_at.get(key, ()):
             self._out_vals[i][j] = value
 
-    def clear_error(self) -> None:
+    def clear_error(self, statusword: int) -> None:
+        """An error cleared (recover), ``statusword`` read over SDO just now.
+        The statusword TPDO may be stale (a drive that left OPERATIONAL sent
+        none): the state is unknown until a fresh one comes, and until then
+        the controlword holds what the SDO answer shows."""
         self.error = None
         self.rebooted = False
         self.halted = False
         self.last_refusal = ""
+        self.stopped_by_drive = False
+        self.state = None
+        self.held_state = None
+        self._last_cw = holding_controlword(statusword)
 
     # --------------------------------------------------------- commands
     def apply_command(self, kind: str, value: float) -> Result:
@@ -584,6 +620,13 @@ class Axis:
         return cw
 
     def _hold_cw(self) -> int:
+        if self.stopped_by_drive:
+            # Enable operation would take Quick Stop Active back to
+            # Operation Enabled (transition 16, quick stop options 5-8) and
+            # Switched On to it; quick stop is no transition in the states a
+            # drive stops in, and a ramp to rest if a lying statusword hid
+            # that the drive still runs. Never disable voltage: that coasts.
+            return cia402.CW_QUICK_STOP
         held = self.held_state
         cw = _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE) if held is not None else self._last_cw & ~cia402.CW_FAULT_RESET_BIT
         if held == State.OPERATION_ENABLED and self.halted:

@@ -44,10 +44,10 @@ from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_va
 from ..result import Result, fail, ok
 from ..units import object_variable_name
 from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
-                   initial_snapshot)
+                   holding_controlword, initial_snapshot)
 from .bus import HeartbeatProducer, SyncProducer, open_bus
-from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, VELOCITY_ACTUAL, mode_of,
-                    supported_modes_text)
+from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
+                    VELOCITY_ACTUAL, mode_of, supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
@@ -131,6 +131,16 @@ class _Ready:
 class _ClearError:
     axis: str
     raw_position: int
+    statusword: int
+
+
+@dataclass(frozen=True)
+class _Together:
+    """Requests one cycle must take together: a state request with the
+    error clearing it depends on, so that no cycle sees one without the
+    other (a cleared error and no target state yet would judge the drive's
+    state against the one held before the error)."""
+    messages: Tuple[Any, ...]
 
 
 @dataclass(frozen=True)
@@ -179,15 +189,21 @@ class _Emcy:
 
 class _ReceiveErrors(can.Listener):
     """Handles the CAN notifier's receive errors: logged (at most once a
-    second) and waited out, so its reader thread keeps running."""
+    second) and waited out, so its reader thread keeps running.
 
-    def __init__(self) -> None:
+    The notifier keeps the error as its ``exception``, and canopen's Network
+    raises that again on every later send (SDO requests included): cleared
+    here, or an interface that was down once would fail every SDO for good."""
+
+    def __init__(self, notifier: can.Notifier) -> None:
+        self._notifier = notifier
         self._logged = 0.0
 
     def on_message_received(self, msg: can.Message) -> None:
         pass
 
     def on_error(self, exc: Exception) -> None:
+        self._notifier.exception = None
         now = time.monotonic()
         if now - self._logged > 1.0:
             self._logged = now
@@ -430,8 +446,11 @@ class Driver:
                 self._axis[name].ready = m.ready
         elif kind is _ClearError:
             axis = self._axis[m.axis]
-            axis.clear_error()
+            axis.clear_error(m.statusword)
             axis.hold(m.raw_position)
+        elif kind is _Together:
+            for part in m.messages:
+                self._handle(part)
         elif kind is _Detach:
             self._axis[m.axis].detach()
         elif kind is _Attach:
@@ -461,7 +480,7 @@ class Driver:
         # python-can's notifier ends its reader thread on the first receive
         # error (an interface going down) unless a listener handles it; this
         # one does, so reception resumes when the interface is up again.
-        network.notifier.add_listener(_ReceiveErrors())
+        network.notifier.add_listener(_ReceiveErrors(network.notifier))
         self.network = network
         self._receiver = receiver = TpdoReceiver([m.cob_id for node in self._nodes.values()
                                                   for m in enabled_maps(node.plan.tx)])
@@ -699,12 +718,14 @@ class Driver:
         self._wait(lambda s: s.cycle >= target, max(1.0, n * self.config.sync.update_ms / 100.0))
 
     def _go(self, names: Sequence[str], state: State, fault_reset: bool = False,
-            timeout: Optional[float] = None, stop_on_error: bool = True) -> Optional[str]:
-        """Drive joints to a CiA 402 state through the cycle; an error text or None."""
+            timeout: Optional[float] = None, stop_on_error: bool = True,
+            together: Sequence[Any] = ()) -> Optional[str]:
+        """Drive joints to a CiA 402 state through the cycle; an error text or
+        None. ``together``: requests the cycle takes in the same breath."""
         names = tuple(names)
         if not names:
             return None
-        after = self._post(_StateRequest(names, state, fault_reset))
+        after = self._post(_Together(tuple(together) + (_StateRequest(names, state, fault_reset),)))
 
         def there(a: AxisSnapshot) -> bool:
             # on a statusword that came after the request, not a stale one
@@ -825,7 +846,10 @@ class Driver:
         initial_out: Dict[ObjectKey, int] = {}
         for rpdo in rx:
             for key in rpdo.keys:
-                initial_out[key] = int(self._upload(name, key))
+                if key == CONTROLWORD:
+                    initial_out[key] = holding_controlword(int(self._upload(name, STATUSWORD)))
+                else:
+                    initial_out[key] = int(self._upload(name, key))
         tx_keys = {k for t in tx for k in t.keys}
         env: Dict[str, float] = {}
         cfg = node.cfg
@@ -1055,6 +1079,12 @@ class Driver:
         if self._heartbeat is not None:
             self._heartbeat.stop()
             self._heartbeat.start()
+            if self.bus_error is not None:
+                # The drives heard no master heartbeat while the bus failed:
+                # their consumers may trip any moment now. Two heartbeat
+                # periods after the restart each has heard one or tripped,
+                # so the fault reset below comes after the trip, not before.
+                time.sleep(2 * self._heartbeat.period_s)
         if self.sync is not None:
             self._start_sync()
         self.bus_error = None
@@ -1064,10 +1094,14 @@ class Driver:
         for name in names:
             a = self._snapshot.axes[name]
             if a.rebooted or a.nmt_state in ("STOPPED", "PRE-OPERATIONAL", "INITIALISING", "LOST"):
-                # A node that rebooted lost its configuration: redo it.
+                # Configure the node again: one that rebooted lost its
+                # configuration, and one that was silent or left OPERATIONAL
+                # may have lost or been given another. Only a rebooted node
+                # is reset: a reset restarts the position counter, and
+                # pre-operational is enough to write the rest.
                 self._wait(lambda s: not s.axes[name].attached, 2.0, self._post(_Detach(name)))
                 try:
-                    binding = self._configure(name)
+                    binding = self._configure(name, reset=a.rebooted)
                 except _InitError as e:
                     return fail("recover: %s" % e)
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
@@ -1088,8 +1122,8 @@ class Driver:
                 # that left OPERATIONAL by itself (its communication error
                 # behaviour, 0x1029) is started again; harmless otherwise
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
-        self._post(*[_ClearError(name, self._position(name)) for name in names])
-        err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
+        clear = [_ClearError(name, self._position(name), int(self._upload(name, STATUSWORD))) for name in names]
+        err = self._go(names, State.OPERATION_ENABLED, fault_reset=True, together=clear)
         if err:
             return fail("recover: " + err)
         self._wait(lambda s: True, 1.0, self._post(_Ready(tuple(names), True)))

@@ -602,7 +602,9 @@ class VirtualEpos4:
             for _, cob, data in due:
                 self._send(cob, data)
         self.sdo.check_timeout(now)
-        if self.heartbeat_seen and not self.is_silent(now):
+        if self.heartbeat_seen:
+            # a silent drive (cut off the bus) hears no heartbeat either: its
+            # consumer trips and the drive reacts; only the EMCY is not heard
             self._check_consumers(now)
         if now >= self.next_heartbeat:
             if not self.heartbeat_stopped and not self.is_silent(now):
