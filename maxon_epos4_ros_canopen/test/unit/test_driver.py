@@ -550,3 +550,34 @@ def test_recover_of_a_node_that_did_not_reboot_keeps_its_position(rig, fault):
     # and it takes commands again from where it is
     assert d.set_command(J1, "position", 41000).success
     assert until(lambda: abs(rig.read(0x6064) - 41000) < 5, 10.0)
+
+
+def test_recover_after_the_bus_was_down_for_longer_than_the_heartbeat_timeout(rig):
+    """Bus down: nothing goes out and nothing comes in for longer than the
+    drive's heartbeat time. recover, once it is up again, must not fail on
+    the silence from before it."""
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "500"}})
+    real_send, real_recv = d.bus.send, d.bus.recv
+    down = [True]
+
+    def send(msg, timeout=None):
+        if down[0]:
+            raise can.CanOperationError("Failed to transmit: Network is down", 100)
+        return real_send(msg, timeout)
+
+    def recv(timeout=None):
+        msg = real_recv(timeout)
+        return None if down[0] else msg
+    d.bus.send, d.bus.recv = send, recv
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "bus error" in d.joints[J1].error
+    stamp = d.joints[J1].counters.get("bad_tpdo", 0)
+    cycles = d.cycles
+    assert until(lambda: d.cycles > cycles + 100)  # longer than the heartbeat timeout (770 ms)
+    down[0] = False
+    r = d.recover()
+    assert r.success, r.message
+    assert rig.state() == State.OPERATION_ENABLED
+    assert d.set_command(J1, "position", 300).success
+    assert until(lambda: rig.read(0x607A) == 300)
+    assert d.joints[J1].counters.get("bad_tpdo", 0) == stamp

@@ -247,7 +247,8 @@ def test_eight_threads_for_15_seconds_lose_no_command(rig):
         threading.excepthook = old_hook
     assert errors == [] and unanswered == []
     assert until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
-        last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2))
+        last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2),
+        [(a.command_value, a.last_refusal, dict(a.counters), a.error) for a in (d.joints[J1], d.joints[J2])])
     assert d.joints[J1].error is None and d.joints[J2].error is None
 
 

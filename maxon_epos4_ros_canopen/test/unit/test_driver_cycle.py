@@ -44,7 +44,7 @@ class Harness:
         tx = tuple(TxPdo(od, m) for m in enabled_maps(plan.tx))
         self.axis = Axis(cfg.nodes[0], od, plan, JointLimits())
         self.axis.attach(Binding(rx, tx, {k: 0 for r in rx for k in r.keys}, {}, 0, 0, 0.0), 0, 0.0)
-        self.receiver = TpdoReceiver([t.cob_id for t in tx])
+        self.receiver = TpdoReceiver({t.cob_id: t.length for t in tx})
         self.payload = {0x181: struct.pack("<Hb", SW_SWITCH_ON_DISABLED, 1), 0x281: struct.pack("<ii", 0, 0),
                         0x381: struct.pack("<ii", 0, 0)}
         self.frames = []
@@ -214,6 +214,17 @@ def test_short_pdo_keeps_the_last_readings(h):
     h.payload[0x381] = b"\x01"
     h.cycle()
     assert h.axis.position == 1000
+    assert h.axis.counters["bad_tpdo"] == 1
+
+
+def test_a_short_frame_overtaken_by_a_good_one_is_still_counted(h):
+    # a forger's short TPDO followed by the drive's own before the cycle reads:
+    # the short one must neither replace the last good frame nor go unseen
+    h.cycle(pos=1000)
+    h.receiver.on_frame(0x381, b"\x01", 0.0)
+    assert h.receiver.latest(0x381)[0] == struct.pack("<ii", 1000, 0)
+    h.cycle(pos=1200)
+    assert h.axis.position == 1200
     assert h.axis.counters["bad_tpdo"] == 1
 
 

@@ -285,6 +285,7 @@ class Axis:
         readings are unknown again until its TPDOs arrive."""
         self._rx, self._tx = binding.rx, binding.tx
         self._tx_last = [None] * len(self._tx)
+        self._rejected_seen = [None] * len(self._tx)  # receiver.rejected at the last read
         self._tx_vals = [None] * len(self._tx)
         self._tx_keys = tuple(t.keys for t in self._tx)
         self._fresh_after = binding.configured_at
@@ -355,7 +356,16 @@ class Axis:
     def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
         """Take the TPDO frames that came since the last cycle."""
         vals = self._tx_vals
+        rejected = receiver.rejected
         for i, tpdo in enumerate(self._tx):
+            n = rejected.get(tpdo.cob_id, 0)
+            seen = self._rejected_seen[i]
+            if n != seen:
+                # frames of a wrong length, dropped by the receiver (counted
+                # from the first read after attach on)
+                if seen is not None:
+                    self._count("bad_tpdo", n - seen)
+                self._rejected_seen[i] = n
             frame = receiver.slots.get(tpdo.cob_id)
             if frame is None or frame is self._tx_last[i]:
                 continue
@@ -484,8 +494,8 @@ class Axis:
             self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
                 cycle - self.status_seen_cycle, (now - self.status_seen) * 1000))
 
-    def _count(self, what: str) -> None:
-        self.counters[what] += 1
+    def _count(self, what: str, n: int = 1) -> None:
+        self.counters[what] += n
         self._counters_view = None
 
     def on_heartbeat(self, data: bytes, now: float) -> None:

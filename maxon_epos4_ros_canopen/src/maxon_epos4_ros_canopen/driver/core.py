@@ -447,6 +447,9 @@ class Driver:
         elif kind is _ClearError:
             axis = self._axis[m.axis]
             axis.clear_error(m.statusword)
+            # the watchdogs start afresh: silence from before recover (a bus
+            # that was down) is not news; silence after it trips them again
+            axis.last_heartbeat = axis.status_seen = time.monotonic()
             axis.hold(m.raw_position)
         elif kind is _Together:
             for part in m.messages:
@@ -482,8 +485,8 @@ class Driver:
         # one does, so reception resumes when the interface is up again.
         network.notifier.add_listener(_ReceiveErrors(network.notifier))
         self.network = network
-        self._receiver = receiver = TpdoReceiver([m.cob_id for node in self._nodes.values()
-                                                  for m in enabled_maps(node.plan.tx)])
+        self._receiver = receiver = TpdoReceiver({m.cob_id: m.length for node in self._nodes.values()
+                                                  for m in enabled_maps(node.plan.tx)})
         for cob in receiver.cob_ids:
             network.subscribe(cob, receiver.on_frame)
         if not self.config.bus.loopback:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import struct
 import time
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -77,15 +77,25 @@ class TxPdo:
 
 
 class TpdoReceiver:
-    """Latest frame of each TPDO COB-ID, filled by the CAN notifier thread."""
+    """Latest frame of each TPDO COB-ID, filled by the CAN notifier thread.
 
-    def __init__(self, cob_ids: Sequence[int]) -> None:
-        self.cob_ids = tuple(cob_ids)
+    A frame whose length is not its mapping's is counted in ``rejected``
+    (written by the notifier thread alone) and never stored: stored, a short
+    forged frame would take the place of the drive's last good one and, if
+    the drive's next frame came before the cycle read it, go unnoticed."""
+
+    def __init__(self, lengths: Mapping[int, int]) -> None:
+        self.cob_ids = tuple(lengths)
+        self.lengths = dict(lengths)
         self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
+        self.rejected: Dict[int, int] = {c: 0 for c in self.cob_ids}
         self._clock = time.monotonic
 
     def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback: never raises."""
+        if len(data) != self.lengths[can_id]:
+            self.rejected[can_id] += 1
+            return
         self.slots[can_id] = (bytes(data), self._clock())
 
     def latest(self, cob_id: int) -> Optional[Frame]:

@@ -72,6 +72,11 @@ class MapPlan:
     rtr_allowed: bool
     entries: Tuple[Tuple[ObjectKey, int], ...]  # (object, bits)
 
+    @property
+    def length(self) -> int:
+        """Bytes of a frame of this PDO."""
+        return sum(bits for _, bits in self.entries) // 8
+
 
 @dataclass(frozen=True)
 class NodePlan:
