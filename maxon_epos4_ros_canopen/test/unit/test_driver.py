@@ -581,3 +581,17 @@ def test_recover_after_the_bus_was_down_for_longer_than_the_heartbeat_timeout(ri
     assert d.set_command(J1, "position", 300).success
     assert until(lambda: rig.read(0x607A) == 300)
     assert d.joints[J1].counters.get("bad_tpdo", 0) == stamp
+
+
+def test_a_boot_up_after_another_error_is_still_reported_as_a_reboot(rig):
+    """A drive that reboots loses its heartbeat first (0x1017 resets): the
+    boot-up that follows must still say that the position reference is gone."""
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "100"}})
+    rig.sim.inject_fault(1, "heartbeat_stop")
+    assert until(lambda: d.joints[J1].error is not None)
+    assert "heartbeat lost" in d.joints[J1].error
+    rig.sim.inject_fault(1, "reboot")
+    assert until(lambda: "rebooted" in (d.joints[J1].error or ""))
+    r = d.recover()
+    assert r.success, r.message
+    assert "position reference is lost" in r.message

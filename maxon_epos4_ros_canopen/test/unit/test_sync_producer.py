@@ -118,7 +118,7 @@ def test_socketcan_hands_the_counter_sequence_to_the_kernel(buses, monkeypatch):
     def send_periodic(msgs, period, **kwargs):
         calls.append((msgs, period, kwargs))
         return task
-    monkeypatch.setattr(bus_module, "_is_socketcan", lambda bus: True)
+    monkeypatch.setattr(bus_module, "is_socketcan", lambda bus: True)
     monkeypatch.setattr(master, "send_periodic", send_periodic)
     sync = SyncProducer(master, overflow=5)
     before = time.monotonic()
@@ -138,7 +138,7 @@ def test_socketcan_without_can_bcm_falls_back_to_the_thread(buses, monkeypatch):
 
     def no_bcm(msgs, period, **kwargs):
         raise OSError(93, "Protocol not supported")
-    monkeypatch.setattr(bus_module, "_is_socketcan", lambda bus: True)
+    monkeypatch.setattr(bus_module, "is_socketcan", lambda bus: True)
     monkeypatch.setattr(master, "send_periodic", no_bcm)
     sync = SyncProducer(master, overflow=2)
     sync.start(0.005)

@@ -63,6 +63,7 @@ def holding_controlword(statusword: int) -> int:
     return _HOLD.get(state, cia402.CW_DISABLE_VOLTAGE)
 
 
+_REBOOTED = "node rebooted"
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
@@ -476,12 +477,20 @@ class Axis:
     def watch(self, now: float, cycle: int, period: float, pdo_timeout: float, pdo_cycles: int) -> None:
         """Heartbeat consumer, NMT state, boot-up and TxPDO watchdog for an
         enabled axis (monotonic time)."""
-        if not self.ready or self.error or not self.attached:
+        if not self.ready or not self.attached:
             return
         if self.rebooted:
-            self.set_error("node rebooted (boot-up message received): its position reference and "
-                           "configuration are lost")
-        elif self.heartbeat_ms > 0 and now - self.last_heartbeat > 1.5 * self.heartbeat_ms / 1000.0 + 2 * period:
+            # A boot-up outweighs an error that came first (a rebooting
+            # drive's heartbeat stops before it): the user must learn that
+            # the position reference is gone.
+            if not (self.error or "").startswith(_REBOOTED):
+                self.error = None
+                self.set_error(_REBOOTED + " (boot-up message received): its position reference and "
+                               "configuration are lost")
+            return
+        if self.error:
+            return
+        if self.heartbeat_ms > 0 and now - self.last_heartbeat > 1.5 * self.heartbeat_ms / 1000.0 + 2 * period:
             self.nmt_state = "LOST"
             self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
                            % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms))

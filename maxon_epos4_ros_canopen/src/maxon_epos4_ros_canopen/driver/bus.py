@@ -82,7 +82,7 @@ class SyncProducer:
         self.stop()
         msgs = self.frames()
         task = None
-        if kernel and _is_socketcan(self.bus):
+        if kernel and is_socketcan(self.bus):
             try:
                 # no modifier callback: python-can then uses BCM, which sends
                 # the first frame one period after setup
@@ -125,7 +125,8 @@ class SyncProducer:
         self.first_at = None
 
 
-def _is_socketcan(bus: can.BusABC) -> bool:
+def is_socketcan(bus: can.BusABC) -> bool:
+    """A python-can SocketCAN bus (kernel timers and filters available)."""
     try:
         from can.interfaces.socketcan import SocketcanBus
     except ImportError:  # pragma: no cover - python-can always ships it

@@ -45,7 +45,7 @@ from ..result import Result, fail, ok
 from ..units import object_variable_name
 from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
                    holding_controlword, initial_snapshot)
-from .bus import HeartbeatProducer, SyncProducer, open_bus
+from .bus import HeartbeatProducer, SyncProducer, is_socketcan, open_bus
 from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
                     VELOCITY_ACTUAL, mode_of, supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
@@ -59,6 +59,7 @@ _PDO_MISSING_CYCLES = 50
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
 _SDO_ATTEMPTS = 3
+_KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 CycleCallback = Callable[["Driver"], None]
 
@@ -518,9 +519,23 @@ class Driver:
             network.subscribe(0x700 + nid, on_heartbeat)
             network.subscribe(0x80 + nid, on_emcy)
         self._sdo = MappingProxyType(sdo)
+        self._filter_in_kernel(network)
         if self.config.heartbeat is not None:
             self._heartbeat = HeartbeatProducer(self.bus, self.config.heartbeat)
             self._heartbeat.start()
+
+    def _filter_in_kernel(self, network: canopen.Network) -> None:
+        """On a SocketCAN bus of its own, the driver has the kernel drop
+        every frame nobody here subscribed to: a busy or hostile bus then
+        costs the notifier thread (and through the GIL the cycle) nothing
+        for frames the driver ignores anyway."""
+        ids = sorted(network.subscribers)
+        if self._external_bus is not None or not is_socketcan(self.bus) or len(ids) > _KERNEL_FILTER_MAX:
+            return
+        try:
+            self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids])
+        except (OSError, can.CanError) as e:
+            log.warning("CAN receive filters not set (%s): every frame reaches the driver", e)
 
     def _on_foreign_frame(self, _can_id: int, _data: Any, _ts: float) -> None:
         self._foreign_frames[0] += 1
