@@ -28,8 +28,8 @@ from ..epos4_errors import describe as describe_error
 from ..objects import ObjectKey, find_variable
 from ..result import Result, fail, ok
 from ..units import Expression, object_variable_name
-from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL,
-                    PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
+from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES, MODES_DISPLAY, MODES_OF_OPERATION,
+                    POSITION_ACTUAL, PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
                     TARGET_VELOCITY, mode_of)
 from .pdo import RxPdo, TpdoReceiver, TxPdo
 from .plan import NodePlan
@@ -51,6 +51,14 @@ _HOLD = {
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
+
+# Bound once for the cycle's hot paths (a module global is one lookup, an
+# enum member through its class several; MODES.get(None) is None, as mode_of).
+_ENABLED = State.OPERATION_ENABLED
+_mode_get = MODES.get
+_isfinite = math.isfinite
+_tuple_new = tuple.__new__
+_CW_NO_FAULT_RESET = ~cia402.CW_FAULT_RESET_BIT
 
 
 class AxisSnapshot(NamedTuple):
@@ -190,6 +198,7 @@ class Axis:
         self.cfg = cfg
         self.name = cfg.name
         self.node_id = cfg.node_id
+        self.key = cfg.key
         self.od = od
         self.plan = plan
         self.limits = limits
@@ -242,6 +251,9 @@ class Axis:
         self._tx_vals: List[Optional[Tuple[Any, ...]]] = []
         self._tx_keys: Tuple[Tuple[ObjectKey, ...], ...] = ()
         self._rx_last: List[bytes] = []
+        self._rx_dirty: List[bool] = []     # values changed since the PDO was last packed
+        self._rx_codec: Tuple[Tuple[int, Callable[..., bytes]], ...] = ()
+        self._tx_codec: Tuple[Tuple[int, int, Callable[[bytes], Tuple[Any, ...]]], ...] = ()
         self._status_pdo = -1
         # Where each object sits, worked out at attach so the cycle indexes
         # lists instead of hashing keys: RxPDO values per PDO, and
@@ -255,6 +267,9 @@ class Axis:
         self._env_at: Tuple[Tuple[str, int, int], ...] = ()
         self._cyclic_rx: Dict[ObjectKey, int] = {}
         self._cw_rx = -1
+        self._cw_out: Tuple[Tuple[int, int], ...] = ()
+        self._target_out: Dict[str, Tuple[Tuple[int, int], ...]] = {}  # command kind -> where its target sits
+        self._cyclic_rx_of: Dict[str, int] = {}                          # command kind -> its target's RxPDO
         self._fresh_after = 0.0
         self._emcy_logged = -1e9
         self._display_mapped = True
@@ -269,12 +284,17 @@ class Axis:
         self._tx_keys = tuple(t.keys for t in self._tx)
         self._fresh_after = binding.configured_at
         self._rx_last = [b""] * len(self._rx)
+        self._rx_dirty = [True] * len(self._rx)
+        self._rx_codec = tuple((r.cob_id, r.pack_args) for r in self._rx)
+        self._tx_codec = tuple((t.cob_id, t.length, t.unpack) for t in self._tx)
         self._out_vals = [[int(binding.initial_out.get(k, 0)) for k in r.keys] for r in self._rx]
         out_at: Dict[ObjectKey, List[Tuple[int, int]]] = {}
         for i, r in enumerate(self._rx):
             for j, key in enumerate(r.keys):
                 out_at.setdefault(key, []).append((i, j))
         self._out_at = {k: tuple(v) for k, v in out_at.items()}
+        self._cw_out = self._out_at[CONTROLWORD]
+        self._target_out = {kind: self._out_at.get(key, ()) for kind, key in TARGET_OF_KIND.items()}
         self._in_at = {}
         for i, t in enumerate(self._tx):
             for j, key in enumerate(t.keys):
@@ -300,6 +320,7 @@ class Axis:
         for key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
             if key in self._out_at:
                 self._cyclic_rx[key] = self._out_at[key][0][0]
+        self._cyclic_rx_of = {kind: self._cyclic_rx.get(key, -1) for kind, key in TARGET_OF_KIND.items()}
         names = []
         for expr in self._from_device + tuple(self.converter.expressions.values()):
             for key in expr.objects:
@@ -334,18 +355,22 @@ class Axis:
     def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
         """Take the TPDO frames that came since the last cycle."""
         vals = self._tx_vals
-        for i, tpdo in enumerate(self._tx):
-            frame = receiver.slots.get(tpdo.cob_id)
-            if frame is None or frame is self._tx_last[i]:
+        seen = self._tx_last
+        slots = receiver.slots
+        i = -1
+        for cob_id, length, unpack in self._tx_codec:
+            i += 1
+            frame = slots.get(cob_id)
+            if frame is None or frame is seen[i]:
                 continue
-            self._tx_last[i] = frame
+            seen[i] = frame
             if frame[1] < self._fresh_after:
                 continue
-            values = tpdo.decode(frame[0])
-            if values is None:
+            data = frame[0]
+            if len(data) != length:  # TxPdo.decode's check, inlined
                 self._count("bad_tpdo")
                 continue
-            vals[i] = values
+            vals[i] = unpack(data)
             if i == self._status_pdo:
                 self.status_seen = frame[1]
                 self.status_seen_cycle = cycle
@@ -520,8 +545,19 @@ class Axis:
 
     def _set_out(self, key: ObjectKey, value: int) -> None:
         """An object's value in every RxPDO that carries it (none: no-op)."""
+        vals, dirty = self._out_vals, self._rx_dirty
         for i, j in self._out_at.get(key, ()):
-            self._out_vals[i][j] = value
+            if vals[i][j] != value:
+                vals[i][j] = value
+                dirty[i] = True
+
+    def _set_target(self, kind: str, value: int) -> None:
+        """_set_out for a command kind's target object (positions worked out at attach)."""
+        vals, dirty = self._out_vals, self._rx_dirty
+        for i, j in self._target_out[kind]:
+            if vals[i][j] != value:
+                vals[i][j] = value
+                dirty[i] = True
 
     def clear_error(self) -> None:
         self.error = None
@@ -532,7 +568,16 @@ class Axis:
     # --------------------------------------------------------- commands
     def apply_command(self, kind: str, value: float) -> Result:
         """A command from a controller, checked again now that it is applied."""
-        problem = command_problem(self, kind, value)
+        mode = _mode_get(self.active_mode)
+        # The common case decided in one expression: every condition of
+        # command_problem holds. Anything else takes command_problem for
+        # the reason (same checks, same order of messages).
+        if not (type(value) is float and _isfinite(value) and mode is not None and mode.command_kind == kind
+                and not self.error and self.ready and not self.halted and self.state is _ENABLED
+                and not self.homing):
+            problem = command_problem(self, kind, value)
+        else:
+            problem = None
         if problem:
             self._count("refused_commands")
             self.last_refusal = problem
@@ -548,12 +593,13 @@ class Axis:
         self.command_kind = kind
         self.command_value = value
         self.command_raw = raw
-        if self.active_mode == PROFILE_POSITION.number:
+        if mode is PROFILE_POSITION:
             self._ppm_pending = raw
-        return ok("clipped to the joint limits (%s)" % self.limits.describe() if clipped else "")
+        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if clipped else ok()
 
     # ------------------------------------------------------------ write
-    def _controlword(self) -> int:
+    def _controlword(self, mode: Any = None) -> int:
+        """The next controlword; ``mode`` is mode_of(active_mode) (write has it)."""
         state = self.state
         target = self.target_state
         if state is None:
@@ -571,9 +617,10 @@ class Axis:
                 cw |= cia402.CW_HALT
             return cw
         cw = self._hold_cw()
-        if self.held_state != State.OPERATION_ENABLED or self.halted:
+        if self.held_state is not _ENABLED or self.halted:
             return cw
-        mode = mode_of(self.active_mode)
+        if mode is None:
+            mode = _mode_get(self.active_mode)
         if mode is None or self.mode_display != mode.number:
             return cw
         if mode is HOMING:
@@ -585,6 +632,8 @@ class Axis:
 
     def _hold_cw(self) -> int:
         held = self.held_state
+        if held is _ENABLED:  # the running case, without hashing the enum
+            return cia402.CW_ENABLE_OPERATION | cia402.CW_HALT if self.halted else cia402.CW_ENABLE_OPERATION
         cw = _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE) if held is not None else self._last_cw & ~cia402.CW_FAULT_RESET_BIT
         if held == State.OPERATION_ENABLED and self.halted:
             cw |= cia402.CW_HALT
@@ -623,53 +672,65 @@ class Axis:
         """Fill the RxPDOs from this axis's own fields and send those that
         changed; the controlword PDO and the cyclic target's PDO go out
         every cycle."""
-        mode = mode_of(self.active_mode)
+        mode = _mode_get(self.active_mode)
         cyclic_rx = -1
-        if mode is not None and mode.cyclic:
+        if mode is not None:
             kind = mode.command_kind
-            if self.command_kind == kind and not self.halted:
-                if self.converter.dynamic[kind]:
-                    raw, err = self.converter.convert(kind, self.command_value, self.env)
-                    if err:
-                        # An object the conversion reads changed: stop where
-                        # we are rather than send garbage.
-                        self.set_error(err)
-                    else:
-                        self.command_raw = raw
-                if not self.halted:
-                    self._set_out(TARGET_OF_KIND[kind], self.command_raw)
-            cyclic_rx = self._cyclic_rx.get(TARGET_OF_KIND[kind], -1)
-        elif mode is not None and mode.command_kind == "velocity" and self.command_kind == "velocity" \
-                and not self.halted:
-            self._set_out(TARGET_VELOCITY, self.command_raw)
-        cw = self._controlword()
-        for i, j in self._out_at[CONTROLWORD]:
-            self._out_vals[i][j] = cw
+            if mode.cyclic:
+                if self.command_kind == kind and not self.halted:
+                    if self.converter.dynamic[kind]:
+                        raw, err = self.converter.convert(kind, self.command_value, self.env)
+                        if err:
+                            # An object the conversion reads changed: stop where
+                            # we are rather than send garbage.
+                            self.set_error(err)
+                        else:
+                            self.command_raw = raw
+                    if not self.halted:
+                        self._set_target(kind, self.command_raw)
+                cyclic_rx = self._cyclic_rx_of[kind]
+            elif kind == "velocity" and self.command_kind == "velocity" and not self.halted:
+                self._set_target("velocity", self.command_raw)
+        cw = self._controlword(mode)
+        vals, dirty = self._out_vals, self._rx_dirty
+        for i, j in self._cw_out:
+            if vals[i][j] != cw:
+                vals[i][j] = cw
+                dirty[i] = True
         self._last_cw = cw
         # The controlword PDO goes out every cycle, as with ros_canopen, so
         # drive and master stay in step even if a frame was lost; the cyclic
         # target's PDO too; the others when they change and every REFRESH
-        # cycles.
+        # cycles. A PDO is packed again only when a value in it changed
+        # (after a pack, the last frame sent holds exactly these values).
         self._tick += 1
         refresh = self._tick % REFRESH_CYCLES == 0
         last = self._rx_last
-        vals = self._out_vals
-        for i, rpdo in enumerate(self._rx):
-            data = rpdo.pack(vals[i])
-            if data != last[i] or i == self._cw_rx or i == cyclic_rx or refresh:
-                last[i] = data
-                send(rpdo.cob_id, data)
+        cw_rx = self._cw_rx
+        i = -1
+        for cob_id, pack in self._rx_codec:
+            i += 1
+            if dirty[i]:
+                data = pack(*vals[i])
+                dirty[i] = False
+                if data != last[i] or i == cw_rx or i == cyclic_rx or refresh:
+                    last[i] = data
+                    send(cob_id, data)
+            elif i == cw_rx or i == cyclic_rx or refresh:
+                send(cob_id, last[i])
 
     # --------------------------------------------------------- snapshot
     def snapshot(self) -> AxisSnapshot:
-        return AxisSnapshot(
-            self.name, self.node_id, self.cfg.key, self.position, self.velocity, self.effort, self.raw_position,
+        # tuple.__new__ straight from the field values: what AxisSnapshot(...)
+        # does, minus its Python-level __new__ (this runs per axis per cycle)
+        return _tuple_new(AxisSnapshot, (
+            self.name, self.node_id, self.key, self.position, self.velocity, self.effort, self.raw_position,
             self.statusword, self.state, self.mode_display, self.active_mode, self.nmt_state, self.error,
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
             self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
             self.command_value, self.last_refusal,
             self._tx_keys, tuple(self._tx_vals),
-            self._counters(), self.limits, self.plan, self.status_seen_cycle)
+            self._counters_view or self._counters(), self.limits, self.plan, self.status_seen_cycle))
 
     def _counters(self) -> Mapping[str, int]:
         view = self._counters_view

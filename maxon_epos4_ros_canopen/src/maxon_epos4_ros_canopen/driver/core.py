@@ -61,6 +61,9 @@ _STANDSTILL = 2  # |0x606C| at or below this is standing still
 _SDO_ATTEMPTS = 3
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 CycleCallback = Callable[["Driver"], None]
+_get_ident = threading.get_ident
+_monotonic = time.monotonic
+_tuple_new = tuple.__new__
 
 # Objects set_object refuses, and why: the driver configures or sends them
 # itself, or writing them would act on the drive's memory.
@@ -259,6 +262,7 @@ class Driver:
             None, 0)
         self._inbox: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
         self._cond = threading.Condition()
+        self._waiters = 0  # threads in _wait (under _cond): the cycle notifies only when there are some
         self._service = threading.Lock()
         self._sdo_locks = {name: threading.Lock() for name in self._nodes}
         self._cache: Dict[str, Dict[ObjectKey, Any]] = {name: {} for name in self._nodes}  # under the SDO lock
@@ -342,10 +346,16 @@ class Driver:
         """A controller's command for a joint, in ROS units. Checked at once
         against the latest snapshot and again when the cycle applies it; the
         last command before a cycle wins. Saturated to the joint limits."""
+        if _get_ident() == self._cycle_ident:
+            # a cycle callback (the trajectory controller), every cycle for
+            # every joint: the axis by its name first, the lookups after
+            axis = self._axis.get(name)
+            if axis is not None:
+                return axis.apply_command(kind, value)
         n = self._name(name)
         if n is None:
             return self._unknown(name)
-        if threading.get_ident() == self._cycle_ident:
+        if _get_ident() == self._cycle_ident:
             axis = self._axis.get(n)
             if axis is None:
                 return fail("%s is not initialized: call init" % n)
@@ -626,25 +636,27 @@ class Driver:
     def cycle(self) -> None:
         """One control cycle: inbox, readings, snapshot, callbacks, RPDOs and
         SYNC. Never raises: a failing part is logged and the rest runs."""
-        self._cycle_no += 1
-        cycle_no = self._cycle_no
-        now = time.monotonic()
+        self._cycle_no = cycle_no = self._cycle_no + 1
+        now = _monotonic()
         self._send_error = None
-        try:
-            self._drain()
-        except Exception:
-            log.exception("driver inbox failed")
+        if not self._inbox.empty():  # the usual cycle has no message: no get/Empty round
+            try:
+                self._drain()
+            except Exception:
+                log.exception("driver inbox failed")
         receiver = self._receiver
+        period, pdo_timeout = self._period, self._pdo_timeout
         snaps = {}
         for axis in self._axes:
             try:
                 if axis.attached:
                     axis.read(receiver, now, cycle_no)
-                    axis.watch(now, cycle_no, self._period, self._pdo_timeout, _PDO_MISSING_CYCLES)
+                    axis.watch(now, cycle_no, period, pdo_timeout, _PDO_MISSING_CYCLES)
             except Exception:
                 log.exception("%s: reading failed", axis.name)
             snaps[axis.name] = axis.snapshot()
-        self._snapshot = DriverSnapshot(cycle_no, MappingProxyType(snaps), self.bus_error, self._foreign_frames[0])
+        self._snapshot = _tuple_new(DriverSnapshot, (cycle_no, MappingProxyType(snaps), self.bus_error,
+                                                     self._foreign_frames[0]))
         for fn in self._callbacks:
             try:
                 fn(self)
@@ -663,8 +675,11 @@ class Driver:
             except (can.CanError, OSError) as e:
                 self._send_error = e
         self._watch_bus()
-        with self._cond:
-            self._cond.notify_all()
+        # _wait counts itself in before it looks at the snapshot, so a
+        # waiter that is not counted yet will see this cycle's snapshot.
+        if self._waiters:
+            with self._cond:
+                self._cond.notify_all()
 
     def _watch_bus(self) -> None:
         e = self._send_error
@@ -687,11 +702,15 @@ class Driver:
             snap = self._snapshot
             return snap.cycle > after and pred(snap)
         with self._cond:
-            while not done():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._thread is None or self._abort.is_set():
-                    return done()
-                self._cond.wait(min(remaining, 0.5))
+            self._waiters += 1
+            try:
+                while not done():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or self._thread is None or self._abort.is_set():
+                        return done()
+                    self._cond.wait(min(remaining, 0.5))
+            finally:
+                self._waiters -= 1
         return True
 
     def _wait_cycles(self, n: int) -> None:
