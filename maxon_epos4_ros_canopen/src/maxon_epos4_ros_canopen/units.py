@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import re
+import weakref
 from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
 from .objects import ObjectKey
@@ -301,7 +302,11 @@ class _Parser:
             key = ObjectKey(int(m.group(1), 16), int(m.group(2), 16) if m.group(2) else 0)
             canonical = object_variable_name(key)
             self.variables[canonical] = key
-        return (lambda env: env[canonical]), False
+
+        def node(env: Env) -> float:
+            return env[canonical]
+        _VARIABLE_NODES[node] = canonical  # lets _binary read the variable itself
+        return node, False
 
 
 def _fold(node: _Node, const: bool) -> Tuple[_Node, bool]:
@@ -338,11 +343,48 @@ def _pow(a: float, b: float) -> float:
     return math.pow(a, b)
 
 
+# variable node -> its name; weak, so nodes of expressions dropped go too
+_VARIABLE_NODES: "weakref.WeakKeyDictionary[_Node, str]" = weakref.WeakKeyDictionary()
+
+
 def _binary(left: Tuple[_Node, bool], right: Tuple[_Node, bool],
             op: Callable[[float, float], float]) -> Tuple[_Node, bool]:
     lf, lc = left
     rf, rc = right
-    return _fold(lambda env: op(lf(env), rf(env)), lc and rc)
+    if lc and rc:
+        return _fold(lambda env: op(lf(env), rf(env)), True)
+    fast = _inline(lf, rf, rc, op)
+    if fast is not None:
+        return fast, False
+    return (lambda env: op(lf(env), rf(env))), False
+
+
+def _inline(lf: _Node, rf: _Node, rc: bool, op: Callable[[float, float], float]) -> Optional[_Node]:
+    """The common shapes of unit conversions (a variable or a sub-expression
+    with a constant: ``obj6064*2*pi/3200``) as one closure with the operator
+    inline, instead of a call for each operand and one for the operator:
+    conversions run for every axis every cycle. The arithmetic is the same
+    (same operands, same order); _div keeps its own function unless the
+    divisor is a constant other than 0."""
+    if not rc or not (op is _add or op is _sub or op is _mul or (op is _div and rf({}) != 0.0)):
+        return None
+    c = rf({})  # a constant node reads nothing
+    name = _VARIABLE_NODES.get(lf)
+    if name is not None:
+        if op is _mul:
+            return lambda env: env[name] * c
+        if op is _div:
+            return lambda env: env[name] / c
+        if op is _add:
+            return lambda env: env[name] + c
+        return lambda env: env[name] - c
+    if op is _mul:
+        return lambda env: lf(env) * c
+    if op is _div:
+        return lambda env: lf(env) / c
+    if op is _add:
+        return lambda env: lf(env) + c
+    return lambda env: lf(env) - c
 
 
 def compile_expression(text: str) -> Expression:

@@ -691,7 +691,11 @@ class Axis:
                 cyclic_rx = self._cyclic_rx_of[kind]
             elif kind == "velocity" and self.command_kind == "velocity" and not self.halted:
                 self._set_target("velocity", self.command_raw)
-        cw = self._controlword(mode)
+        if cyclic_rx >= 0 and self.target_state is None and self.held_state is _ENABLED \
+                and self.state is not None and not self.halted:
+            cw = cia402.CW_ENABLE_OPERATION  # what _controlword answers in a running cyclic mode
+        else:
+            cw = self._controlword(mode)
         vals, dirty = self._out_vals, self._rx_dirty
         for i, j in self._cw_out:
             if vals[i][j] != cw:
