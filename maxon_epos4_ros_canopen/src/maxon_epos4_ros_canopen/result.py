@@ -15,12 +15,12 @@ class Result:
         return self.success
 
 
-_OK = Result(True)  # immutable: the plain success is shared (every command in the cycle answers it)
+OK = Result(True)  # immutable: the plain success is shared (every command in the cycle answers it)
 
 
 def ok(message: str = "", value: str = "") -> Result:
     if not message and not value:
-        return _OK
+        return OK
     return Result(True, message, value)
 
 

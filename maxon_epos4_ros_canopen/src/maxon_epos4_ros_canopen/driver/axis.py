@@ -26,7 +26,7 @@ from ..config import SWITCHING_STATES, NodeConfig
 from ..limits import JointLimits, saturate
 from ..epos4_errors import describe as describe_error
 from ..objects import ObjectKey, find_variable
-from ..result import Result, fail, ok
+from ..result import OK, Result, fail, ok
 from ..units import Expression, object_variable_name
 from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES, MODES_DISPLAY, MODES_OF_OPERATION,
                     POSITION_ACTUAL, PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
@@ -205,6 +205,8 @@ class Axis:
         self.converter = Converter(cfg, od)
         self.switching_state = SWITCHING_STATE[cfg.switching_state]
         self._from_device = (cfg.pos_from_device, cfg.vel_from_device, cfg.eff_from_device)
+        # a constant conversion (eff_from_device: "0") has one value: not evaluated per cycle
+        self._from_const = tuple(e.evaluate({}) if e.constant else None for e in self._from_device)
         # readings (ROS units) and what the drive reports
         self.position = math.nan
         self.velocity = math.nan
@@ -398,10 +400,15 @@ class Axis:
                 env[name] = vals[i][j]
         env["pos"], env["vel"], env["eff"] = self.position, self.velocity, self.effort
         pos, vel, eff = self._from_device
-        self.position = pos.evaluate(env)
-        self.velocity = vel.evaluate(env)
-        self.effort = eff.evaluate(env)
-        self._supervise()
+        cpos, cvel, ceff = self._from_const
+        self.position = pos.evaluate(env) if cpos is None else cpos
+        self.velocity = vel.evaluate(env) if cvel is None else cvel
+        self.effort = eff.evaluate(env) if ceff is None else ceff
+        # _supervise has nothing to do while the drive stays in the state it
+        # was brought to and nothing else is asked
+        state = self.state
+        if state is not self.held_state or self.target_state is not None:
+            self._supervise()
 
     def _supervise(self) -> None:
         state, target = self.state, self.target_state
@@ -595,7 +602,7 @@ class Axis:
         self.command_raw = raw
         if mode is PROFILE_POSITION:
             self._ppm_pending = raw
-        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if clipped else ok()
+        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if clipped else OK
 
     # ------------------------------------------------------------ write
     def _controlword(self, mode: Any = None) -> int:
@@ -687,7 +694,12 @@ class Axis:
                         else:
                             self.command_raw = raw
                     if not self.halted:
-                        self._set_target(kind, self.command_raw)
+                        raw = self.command_raw
+                        vals, dirty = self._out_vals, self._rx_dirty
+                        for i, j in self._target_out[kind]:  # _set_target, inline: every cycle
+                            if vals[i][j] != raw:
+                                vals[i][j] = raw
+                                dirty[i] = True
                 cyclic_rx = self._cyclic_rx_of[kind]
             elif kind == "velocity" and self.command_kind == "velocity" and not self.halted:
                 self._set_target("velocity", self.command_raw)
