@@ -291,6 +291,7 @@ class Driver:
         self.overruns = 0
         self.bus_error: Optional[str] = None
         self._send_failures = 0
+        self._out_frames: Dict[int, can.Message] = {}  # COB-ID -> the message _send reuses (cycle thread)
         self._foreign_frames = [0]  # written by the notifier thread only
 
     # ============================================================ lookup
@@ -538,8 +539,18 @@ class Driver:
             bus.shutdown()
 
     def _send(self, cob_id: int, data: bytes) -> None:
+        """An RxPDO from the cycle thread (the only caller). One can.Message
+        per COB-ID is reused, its bytes overwritten, as SyncProducer does:
+        python-can's send turns the message into a frame before it returns
+        (the virtual bus copies it), and building a Message per frame was a
+        large part of the cycle."""
+        msg = self._out_frames.get(cob_id)
+        if msg is None or len(msg.data) != len(data):
+            msg = self._out_frames[cob_id] = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
+        else:
+            msg.data[:] = data
         try:
-            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+            self.bus.send(msg)
         except (can.CanError, OSError) as e:
             self._send_error = e
 
