@@ -108,6 +108,10 @@ def object_variable_name(key: ObjectKey) -> str:
     return "obj%04X" % key.index
 
 
+# What a compiled function may raise; evaluate() turns each into NaN.
+EVALUATION_ERRORS = (ArithmeticError, ValueError, TypeError)
+
+
 class Expression:
     """A compiled expression. Call ``evaluate(env)`` with the variables.
 
@@ -115,15 +119,17 @@ class Expression:
     ``obj6064``, ``obj6099sub02``...), ``objects`` the ObjectKeys behind the
     ``obj`` ones: the driver maps or reads these. Evaluation never raises: a
     domain error (sqrt(-1), 1/0, overflow) gives NaN, which the driver
-    refuses to put on the bus.
+    refuses to put on the bus. ``raw`` is the compiled function itself, for
+    the driver's cycle, which calls it inline: it may raise
+    EVALUATION_ERRORS, and its result is a number to pass through float().
     """
 
-    __slots__ = ("text", "variables", "objects", "_fn", "constant")
+    __slots__ = ("text", "variables", "objects", "_fn", "constant", "raw")
 
     def __init__(self, text: str, fn: _Node, variables: Tuple[str, ...],
                  objects: Tuple[ObjectKey, ...], constant: bool) -> None:
         self.text = text
-        self._fn = fn
+        self._fn = self.raw = fn
         self.variables = variables
         self.objects = objects
         self.constant = constant
@@ -131,7 +137,7 @@ class Expression:
     def evaluate(self, env: Env) -> float:
         try:
             return float(self._fn(env))
-        except (ArithmeticError, ValueError, TypeError):
+        except EVALUATION_ERRORS:
             return math.nan
 
     __call__ = evaluate
@@ -282,6 +288,8 @@ class _Parser:
         const = all(a[1] for a in args)
         if len(fns) == 1:
             (a0,) = fns
+            if fn is _rint and not const:  # _rint inline: every position command is rint(...)
+                return (lambda env: float(round(a0(env)))), False
             return _fold(lambda env: fn(a0(env)), const)
         if len(fns) == 3:
             a0, a1, a2 = fns

@@ -152,3 +152,12 @@ def test_inline_operators_give_the_same_values(text, reference, value):
 def test_division_and_overflow_keep_their_ieee_answer(text, env):
     value = compile_expression(text).evaluate(env)
     assert math.isnan(value) or math.isinf(value)
+
+
+@pytest.mark.parametrize("value, expected", [
+    (0.25, 0.0), (0.75, 2.0), (1.25, 2.0), (-0.75, -2.0), (1e6, 2e6), (math.nan, math.nan), (math.inf, math.nan),
+])
+def test_rint_of_a_variable_expression_rounds_half_to_even_and_gives_nan_not_an_error(value, expected):
+    got = compile_expression("rint(pos*2)").evaluate({"pos": value})
+    assert got == expected or (math.isnan(got) and math.isnan(expected))
+    assert type(got) is float
