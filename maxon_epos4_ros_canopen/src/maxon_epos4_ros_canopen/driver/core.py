@@ -685,7 +685,10 @@ class Driver:
                 self.sync.send()
             except (can.CanError, OSError) as e:
                 self._send_error = e
-        self._watch_bus()
+        if self._send_error is None:  # _watch_bus's usual answer, without the call
+            self._send_failures = 0
+        else:
+            self._watch_bus()
         # _wait counts itself in before it looks at the snapshot, so a
         # waiter that is not counted yet will see this cycle's snapshot.
         if self._waiters:
