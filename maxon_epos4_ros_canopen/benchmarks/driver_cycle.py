@@ -12,10 +12,13 @@ trajectory path), and prints, per axis count:
 
 ``--compare REV`` runs the same measurement on the driver of git revision
 REV (checked out into a temporary worktree) in a subprocess right after,
-and prints the ratio now/REV for each axis count.
+and prints the ratio now/REV for each axis count. With ``--repeat N`` both
+drivers run in subprocesses, N rounds alternating which goes first, and the
+medians are printed: the ratio of one round swings with the machine's load,
+the median of several much less.
 
     PYTHONPATH=maxon_epos4_ros_canopen/src .venv/bin/python \\
-        maxon_epos4_ros_canopen/benchmarks/driver_cycle.py [--compare REV] [--seconds S] [AXES ...]
+        maxon_epos4_ros_canopen/benchmarks/driver_cycle.py [--compare REV [--repeat N]] [--seconds S] [AXES ...]
 """
 import argparse
 import json
@@ -101,19 +104,58 @@ def show(label: str, res: dict) -> None:
               res["receive_us"], res["receive_us"] / n, res["overruns"]))
 
 
-def compare(rev: str, axes: list, seconds: float) -> list:
-    """The same measurement on the driver of git revision rev."""
+def measure(src: str, axes: list, seconds: float) -> list:
+    """This measurement in a subprocess, on the driver under ``src``."""
+    env = dict(os.environ, PYTHONPATH=src)
+    out = subprocess.run([sys.executable, os.path.abspath(__file__), "--json", "--seconds", str(seconds)]
+                         + [str(a) for a in axes], env=env, check=True, stdout=subprocess.PIPE).stdout
+    return json.loads(out.decode().strip().splitlines()[-1])
+
+
+def compare(rev: str, axes: list, seconds: float, repeat: int = 0) -> list:
+    """The same measurement on the driver of git revision rev; with repeat,
+    [(now, rev)] for each of ``repeat`` rounds, alternating the order."""
     with tempfile.TemporaryDirectory() as tmp:
         tree = os.path.join(tmp, "tree")
         subprocess.run(["git", "-C", REPO, "worktree", "add", "--detach", tree, rev], check=True,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
-            env = dict(os.environ, PYTHONPATH=os.path.join(tree, "maxon_epos4_ros_canopen", "src"))
-            out = subprocess.run([sys.executable, os.path.abspath(__file__), "--json", "--seconds", str(seconds)]
-                                 + [str(a) for a in axes], env=env, check=True, stdout=subprocess.PIPE).stdout
-            return json.loads(out.decode().strip().splitlines()[-1])
+            old_src = os.path.join(tree, "maxon_epos4_ros_canopen", "src")
+            if not repeat:
+                return measure(old_src, axes, seconds)
+            now_src = os.path.join(REPO, "maxon_epos4_ros_canopen", "src")
+            rounds = []
+            for k in range(repeat):
+                if k % 2 == 0:
+                    now = measure(now_src, axes, seconds)
+                    old = measure(old_src, axes, seconds)
+                else:
+                    old = measure(old_src, axes, seconds)
+                    now = measure(now_src, axes, seconds)
+                rounds.append((now, old))
+                print("round %d/%d: cycle CPU now/%s %s" % (k + 1, repeat, rev[:10], ", ".join(
+                    "%d axes %.2f" % (n["axes"], n["cycle_us"] / o["cycle_us"]) for n, o in zip(now, old))),
+                    flush=True)
+            return rounds
         finally:
             subprocess.run(["git", "-C", REPO, "worktree", "remove", "--force", tree], check=False)
+
+
+def show_rounds(rev: str, rounds: list) -> None:
+    """Medians over the rounds: each driver's cycle and receive CPU, and the
+    median of the per-round ratios."""
+    med = statistics.median
+    print("median of %d rounds (cycle CPU us now / %s, ratio; receive ratio; cycle + receive ratio):"
+          % (len(rounds), rev[:10]))
+    for i, first in enumerate(rounds[0][0]):
+        now = [r[0][i] for r in rounds]
+        old = [r[1][i] for r in rounds]
+        ratio = med([n["cycle_us"] / o["cycle_us"] for n, o in zip(now, old)])
+        rx = med([n["receive_us"] / o["receive_us"] for n, o in zip(now, old) if o["receive_us"]] or [float("nan")])
+        both = med([(n["cycle_us"] + n["receive_us"]) / (o["cycle_us"] + o["receive_us"]) for n, o in zip(now, old)])
+        print("  axes %3d: cycle CPU %7.0f / %7.0f us, ratio %.2f (rounds %s); receive %.2f; cycle + receive %.2f"
+              % (first["axes"], med([n["cycle_us"] for n in now]), med([o["cycle_us"] for o in old]), ratio,
+                 " ".join("%.2f" % (n["cycle_us"] / o["cycle_us"]) for n, o in zip(now, old)), rx, both))
 
 
 def main() -> int:
@@ -121,8 +163,13 @@ def main() -> int:
     parser.add_argument("axes", nargs="*", type=int, default=[1, 8, 32])
     parser.add_argument("--seconds", type=float, default=3.0)
     parser.add_argument("--compare", metavar="REV", help="also measure the driver of this git revision")
+    parser.add_argument("--repeat", type=int, default=0, metavar="N",
+                        help="with --compare: N rounds, both drivers in subprocesses, order alternating; medians")
     parser.add_argument("--json", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.compare and args.repeat > 0:
+        show_rounds(args.compare, compare(args.compare, args.axes, args.seconds, args.repeat))
+        return 0
     results = [run(n, args.seconds) for n in args.axes]
     if args.json:
         print(json.dumps(results))

@@ -15,7 +15,12 @@ class Result:
         return self.success
 
 
+OK = Result(True)  # immutable: the plain success is shared (every command in the cycle answers it)
+
+
 def ok(message: str = "", value: str = "") -> Result:
+    if not message and not value:
+        return OK
     return Result(True, message, value)
 
 

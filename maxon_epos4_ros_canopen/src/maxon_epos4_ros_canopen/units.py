@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import re
+import weakref
 from typing import Callable, Dict, List, Mapping, Optional, Tuple
 
 from .objects import ObjectKey
@@ -107,6 +108,10 @@ def object_variable_name(key: ObjectKey) -> str:
     return "obj%04X" % key.index
 
 
+# What a compiled function may raise; evaluate() turns each into NaN.
+EVALUATION_ERRORS = (ArithmeticError, ValueError, TypeError)
+
+
 class Expression:
     """A compiled expression. Call ``evaluate(env)`` with the variables.
 
@@ -114,15 +119,17 @@ class Expression:
     ``obj6064``, ``obj6099sub02``...), ``objects`` the ObjectKeys behind the
     ``obj`` ones: the driver maps or reads these. Evaluation never raises: a
     domain error (sqrt(-1), 1/0, overflow) gives NaN, which the driver
-    refuses to put on the bus.
+    refuses to put on the bus. ``raw`` is the compiled function itself, for
+    the driver's cycle, which calls it inline: it may raise
+    EVALUATION_ERRORS, and its result is a number to pass through float().
     """
 
-    __slots__ = ("text", "variables", "objects", "_fn", "constant")
+    __slots__ = ("text", "variables", "objects", "_fn", "constant", "raw")
 
     def __init__(self, text: str, fn: _Node, variables: Tuple[str, ...],
                  objects: Tuple[ObjectKey, ...], constant: bool) -> None:
         self.text = text
-        self._fn = fn
+        self._fn = self.raw = fn
         self.variables = variables
         self.objects = objects
         self.constant = constant
@@ -130,7 +137,7 @@ class Expression:
     def evaluate(self, env: Env) -> float:
         try:
             return float(self._fn(env))
-        except (ArithmeticError, ValueError, TypeError):
+        except EVALUATION_ERRORS:
             return math.nan
 
     __call__ = evaluate
@@ -281,6 +288,8 @@ class _Parser:
         const = all(a[1] for a in args)
         if len(fns) == 1:
             (a0,) = fns
+            if fn is _rint and not const:  # _rint inline: every position command is rint(...)
+                return (lambda env: float(round(a0(env)))), False
             return _fold(lambda env: fn(a0(env)), const)
         if len(fns) == 3:
             a0, a1, a2 = fns
@@ -301,7 +310,11 @@ class _Parser:
             key = ObjectKey(int(m.group(1), 16), int(m.group(2), 16) if m.group(2) else 0)
             canonical = object_variable_name(key)
             self.variables[canonical] = key
-        return (lambda env: env[canonical]), False
+
+        def node(env: Env) -> float:
+            return env[canonical]
+        _VARIABLE_NODES[node] = canonical  # lets _binary read the variable itself
+        return node, False
 
 
 def _fold(node: _Node, const: bool) -> Tuple[_Node, bool]:
@@ -338,11 +351,48 @@ def _pow(a: float, b: float) -> float:
     return math.pow(a, b)
 
 
+# variable node -> its name; weak, so nodes of expressions dropped go too
+_VARIABLE_NODES: "weakref.WeakKeyDictionary[_Node, str]" = weakref.WeakKeyDictionary()
+
+
 def _binary(left: Tuple[_Node, bool], right: Tuple[_Node, bool],
             op: Callable[[float, float], float]) -> Tuple[_Node, bool]:
     lf, lc = left
     rf, rc = right
-    return _fold(lambda env: op(lf(env), rf(env)), lc and rc)
+    if lc and rc:
+        return _fold(lambda env: op(lf(env), rf(env)), True)
+    fast = _inline(lf, rf, rc, op)
+    if fast is not None:
+        return fast, False
+    return (lambda env: op(lf(env), rf(env))), False
+
+
+def _inline(lf: _Node, rf: _Node, rc: bool, op: Callable[[float, float], float]) -> Optional[_Node]:
+    """The common shapes of unit conversions (a variable or a sub-expression
+    with a constant: ``obj6064*2*pi/3200``) as one closure with the operator
+    inline, instead of a call for each operand and one for the operator:
+    conversions run for every axis every cycle. The arithmetic is the same
+    (same operands, same order); _div keeps its own function unless the
+    divisor is a constant other than 0."""
+    if not rc or not (op is _add or op is _sub or op is _mul or (op is _div and rf({}) != 0.0)):
+        return None
+    c = rf({})  # a constant node reads nothing
+    name = _VARIABLE_NODES.get(lf)
+    if name is not None:
+        if op is _mul:
+            return lambda env: env[name] * c
+        if op is _div:
+            return lambda env: env[name] / c
+        if op is _add:
+            return lambda env: env[name] + c
+        return lambda env: env[name] - c
+    if op is _mul:
+        return lambda env: lf(env) * c
+    if op is _div:
+        return lambda env: lf(env) / c
+    if op is _add:
+        return lambda env: lf(env) + c
+    return lambda env: lf(env) - c
 
 
 def compile_expression(text: str) -> Expression:

@@ -4,6 +4,7 @@ commands and the profile position handshake, frame by frame."""
 import math
 import os
 import struct
+import time
 
 import canopen
 import pytest
@@ -339,3 +340,52 @@ def test_after_clearing_an_error_the_first_controlword_holds_what_the_drive_said
     assert h.controlword() & 0x8F == 0x0002
     h.cycle(sw=SW_QUICK_STOP)
     assert h.controlword() == 0x0000  # the walk to enable starts from quick stop active
+
+
+def test_an_rxpdo_value_goes_out_once_when_it_changes_and_again_with_each_refresh(h):
+    # The cycle packs a PDO again only when a value in it changed: what goes
+    # out must still be the current values, on change and on refresh.
+    from maxon_epos4_ros_canopen.objects import ObjectKey
+    ppm_enabled(h)
+    h.axis.set_output(ObjectKey(0x6083), 1234)
+    out = h.cycle(sw=SW_ENABLED)
+    assert struct.unpack_from("<I", out[0x401])[0] == 1234
+    h.axis.set_output(ObjectKey(0x6083), 1234)       # the same value: nothing new to send
+    sent = [h.cycle(sw=SW_ENABLED) for _ in range(REFRESH_CYCLES)]
+    refreshes = [o[0x401] for o in sent if 0x401 in o]
+    assert len(refreshes) == 1 and struct.unpack_from("<I", refreshes[0])[0] == 1234
+    h.axis.set_output(ObjectKey(0x6084), 99)
+    out = h.cycle(sw=SW_ENABLED)
+    assert struct.unpack("<II", out[0x401]) == (1234, 99)
+    # the controlword PDO, sent every cycle from its last frame when nothing
+    # in it changed, follows a change at once
+    h.axis.halted = True
+    out = h.cycle(sw=SW_ENABLED)
+    assert struct.unpack_from("<H", out[0x201])[0] & 0x0100
+
+
+def test_a_snapshot_keeps_its_values_after_the_axis_moves_on():
+    h = Harness(pos_from_device="obj6064")
+    h.cycle(sw=SW_SWITCH_ON_DISABLED, pos=100)
+    before = h.axis.snapshot()
+    h.cycle(pos=200)
+    h.axis._count("bad_tpdo")
+    after = h.axis.snapshot()
+    assert (before.position, before.raw_position, before.counters["bad_tpdo"]) == (100, 100, 0)
+    assert (after.position, after.raw_position, after.counters["bad_tpdo"]) == (200, 200, 1)
+    assert type(after).__name__ == "AxisSnapshot" and after.name == "j" and after.key == "n1"
+    with pytest.raises(AttributeError):
+        after.position = 5
+
+
+def test_a_drive_out_of_sight_is_held_with_quick_stop(h):
+    """No statusword for longer than the watchdog (a drive its consumer sent
+    to pre-operational sends none): its state is unknown, and it must not be
+    re-enabled by the held enable operation the moment it takes PDOs again
+    (an NMT start by anyone). Quick stop holds every state it may be in."""
+    walk_to_enabled(h)
+    h.axis.ready = True
+    h.axis.watch(now=time.monotonic() + 100.0, cycle=h.n + 200, period=0.01, pdo_timeout=1.0, pdo_cycles=50)
+    assert "no statusword" in h.axis.error
+    h.axis.write(lambda cob, data: h.last.update({cob: data}))
+    assert h.controlword() & 0x8F == 0x0002

@@ -125,3 +125,39 @@ def test_a_never_finite_expression_names_its_key_and_file():
               "nodes": {"node1": {"id": 1, "name": "j", "eds_file": dcf, "pos_to_device": "pos/0"}}}
     with pytest.raises(ConfigError, match="node_layer.yaml.*nodes/node1/pos_to_device"):
         load_config(params, "node_layer.yaml")
+
+
+@pytest.mark.parametrize("text, reference", [
+    # shapes the compiler evaluates with the operator inline (a variable or a
+    # sub-expression with a constant): the same arithmetic, in the same order
+    ("obj6064*2*pi/3200", lambda v: v * 2.0 * math.pi / 3200.0),
+    ("pos*3200/(2*pi)", lambda v: v * 3200.0 / (2.0 * math.pi)),
+    ("pos + 0.5", lambda v: v + 0.5),
+    ("pos - 0.5", lambda v: v - 0.5),
+    ("(pos - 1) * 3", lambda v: (v - 1.0) * 3.0),
+    ("abs(pos) / 4", lambda v: abs(v) / 4.0),
+])
+@pytest.mark.parametrize("value", [0, 1, -7, 123456789, 0.1, -2.5, 1e300, math.inf, -math.inf, math.nan])
+def test_inline_operators_give_the_same_values(text, reference, value):
+    name = "obj6064" if "obj6064" in text else "pos"
+    got = compile_expression(text).evaluate({name: value})
+    want = reference(value)
+    assert got == want or (math.isnan(got) and math.isnan(want))
+
+
+@pytest.mark.parametrize("text, env", [
+    ("2/pos", {"pos": 0.0}), ("(pos+1)/(pos-1)", {"pos": 1.0}), ("pos*1e308*10", {"pos": 10.0}),
+    ("obj6064/1e-320", {"obj6064": 1e10}),
+])
+def test_division_and_overflow_keep_their_ieee_answer(text, env):
+    value = compile_expression(text).evaluate(env)
+    assert math.isnan(value) or math.isinf(value)
+
+
+@pytest.mark.parametrize("value, expected", [
+    (0.25, 0.0), (0.75, 2.0), (1.25, 2.0), (-0.75, -2.0), (1e6, 2e6), (math.nan, math.nan), (math.inf, math.nan),
+])
+def test_rint_of_a_variable_expression_rounds_half_to_even_and_gives_nan_not_an_error(value, expected):
+    got = compile_expression("rint(pos*2)").evaluate({"pos": value})
+    assert got == expected or (math.isnan(got) and math.isnan(expected))
+    assert type(got) is float

@@ -26,10 +26,10 @@ from ..config import SWITCHING_STATES, NodeConfig
 from ..limits import JointLimits, saturate
 from ..epos4_errors import describe as describe_error
 from ..objects import ObjectKey, find_variable
-from ..result import Result, fail, ok
-from ..units import Expression, object_variable_name
-from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL,
-                    PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
+from ..result import OK, Result, fail, ok
+from ..units import EVALUATION_ERRORS, Expression, object_variable_name
+from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES, MODES_DISPLAY, MODES_OF_OPERATION,
+                    POSITION_ACTUAL, PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
                     TARGET_VELOCITY, mode_of)
 from .pdo import RxPdo, TpdoReceiver, TxPdo
 from .plan import NodePlan
@@ -67,6 +67,14 @@ _REBOOTED = "node rebooted"
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
+
+# Bound once for the cycle's hot paths (a module global is one lookup, an
+# enum member through its class several; MODES.get(None) is None, as mode_of).
+_ENABLED = State.OPERATION_ENABLED
+_mode_get = MODES.get
+_isfinite = math.isfinite
+_tuple_new = tuple.__new__
+_CW_NO_FAULT_RESET = ~cia402.CW_FAULT_RESET_BIT
 
 
 class AxisSnapshot(NamedTuple):
@@ -143,7 +151,10 @@ class Converter:
         overwritten with ``value``."""
         expr = self.expressions[kind]
         env[self._VARIABLE[kind]] = value
-        raw = expr.evaluate(env)
+        try:  # Expression.evaluate, inline: every command goes through here
+            raw = float(expr.raw(env))
+        except EVALUATION_ERRORS:
+            raw = math.nan
         if not math.isfinite(raw):
             return None, "%s %g converts to %r by %r: refused" % (kind, value, raw, expr.text)
         raw_int = int(round(raw))
@@ -206,12 +217,16 @@ class Axis:
         self.cfg = cfg
         self.name = cfg.name
         self.node_id = cfg.node_id
+        self.key = cfg.key
         self.od = od
         self.plan = plan
         self.limits = limits
         self.converter = Converter(cfg, od)
         self.switching_state = SWITCHING_STATE[cfg.switching_state]
         self._from_device = (cfg.pos_from_device, cfg.vel_from_device, cfg.eff_from_device)
+        # a constant conversion (eff_from_device: "0") has one value: not evaluated per cycle
+        self._from_const = tuple(e.evaluate({}) if e.constant else None for e in self._from_device)
+        self._from_raw = tuple(e.raw for e in self._from_device)
         # readings (ROS units) and what the drive reports
         self.position = math.nan
         self.velocity = math.nan
@@ -235,9 +250,11 @@ class Axis:
         self.target_state: Optional[State] = None
         self._confirm_after = 0  # status_seen_cycle when target_state was requested
         # The drive left the held state on its own for a state that is no
-        # fault: the driver holds it with quick stop until asked otherwise
-        # (see _hold_cw).
-        self.stopped_by_drive = False
+        # fault, or the driver lost sight of it (no heartbeat, no TPDO, not
+        # OPERATIONAL, bus error): its state is not the held one or
+        # not known, and the driver holds it with quick stop until a state
+        # is requested (see _hold_cw).
+        self.quick_stop_hold = False
         self.held_state: Optional[State] = None  # the state last reached on request
         self.fault_reset = False
         self.active_mode: Optional[int] = None
@@ -263,6 +280,9 @@ class Axis:
         self._tx_vals: List[Optional[Tuple[Any, ...]]] = []
         self._tx_keys: Tuple[Tuple[ObjectKey, ...], ...] = ()
         self._rx_last: List[bytes] = []
+        self._rx_dirty: List[bool] = []     # values changed since the PDO was last packed
+        self._rx_codec: Tuple[Tuple[int, Callable[..., bytes]], ...] = ()
+        self._tx_codec: Tuple[Tuple[int, int, Callable[[bytes], Tuple[Any, ...]]], ...] = ()
         self._status_pdo = -1
         # Where each object sits, worked out at attach so the cycle indexes
         # lists instead of hashing keys: RxPDO values per PDO, and
@@ -276,6 +296,9 @@ class Axis:
         self._env_at: Tuple[Tuple[str, int, int], ...] = ()
         self._cyclic_rx: Dict[ObjectKey, int] = {}
         self._cw_rx = -1
+        self._cw_out: Tuple[Tuple[int, int], ...] = ()
+        self._target_out: Dict[str, Tuple[Tuple[int, int], ...]] = {}  # command kind -> where its target sits
+        self._cyclic_rx_of: Dict[str, int] = {}                          # command kind -> its target's RxPDO
         self._fresh_after = 0.0
         self._emcy_logged = -1e9
         self._display_mapped = True
@@ -291,12 +314,17 @@ class Axis:
         self._tx_keys = tuple(t.keys for t in self._tx)
         self._fresh_after = binding.configured_at
         self._rx_last = [b""] * len(self._rx)
+        self._rx_dirty = [True] * len(self._rx)
+        self._rx_codec = tuple((r.cob_id, r.pack_args) for r in self._rx)
+        self._tx_codec = tuple((t.cob_id, t.length, t.unpack) for t in self._tx)
         self._out_vals = [[int(binding.initial_out.get(k, 0)) for k in r.keys] for r in self._rx]
         out_at: Dict[ObjectKey, List[Tuple[int, int]]] = {}
         for i, r in enumerate(self._rx):
             for j, key in enumerate(r.keys):
                 out_at.setdefault(key, []).append((i, j))
         self._out_at = {k: tuple(v) for k, v in out_at.items()}
+        self._cw_out = self._out_at[CONTROLWORD]
+        self._target_out = {kind: self._out_at.get(key, ()) for kind, key in TARGET_OF_KIND.items()}
         self._in_at = {}
         for i, t in enumerate(self._tx):
             for j, key in enumerate(t.keys):
@@ -323,6 +351,7 @@ class Axis:
         for key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
             if key in self._out_at:
                 self._cyclic_rx[key] = self._out_at[key][0][0]
+        self._cyclic_rx_of = {kind: self._cyclic_rx.get(key, -1) for kind, key in TARGET_OF_KIND.items()}
         names = []
         for expr in self._from_device + tuple(self.converter.expressions.values()):
             for key in expr.objects:
@@ -357,27 +386,31 @@ class Axis:
     def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
         """Take the TPDO frames that came since the last cycle."""
         vals = self._tx_vals
+        seen = self._tx_last
+        slots = receiver.slots
         rejected = receiver.rejected
-        for i, tpdo in enumerate(self._tx):
-            n = rejected.get(tpdo.cob_id, 0)
-            seen = self._rejected_seen[i]
-            if n != seen:
+        rejected_seen = self._rejected_seen
+        i = -1
+        for cob_id, length, unpack in self._tx_codec:
+            i += 1
+            n = rejected.get(cob_id, 0)
+            if n != rejected_seen[i]:
                 # frames of a wrong length, dropped by the receiver (counted
                 # from the first read after attach on)
-                if seen is not None:
-                    self._count("bad_tpdo", n - seen)
-                self._rejected_seen[i] = n
-            frame = receiver.slots.get(tpdo.cob_id)
-            if frame is None or frame is self._tx_last[i]:
+                if rejected_seen[i] is not None:
+                    self._count("bad_tpdo", n - rejected_seen[i])
+                rejected_seen[i] = n
+            frame = slots.get(cob_id)
+            if frame is None or frame is seen[i]:
                 continue
-            self._tx_last[i] = frame
+            seen[i] = frame
             if frame[1] < self._fresh_after:
                 continue
-            values = tpdo.decode(frame[0])
-            if values is None:
+            data = frame[0]
+            if len(data) != length:  # TxPdo.decode's check, inlined
                 self._count("bad_tpdo")
                 continue
-            vals[i] = values
+            vals[i] = unpack(data)
             if i == self._status_pdo:
                 self.status_seen = frame[1]
                 self.status_seen_cycle = cycle
@@ -404,11 +437,35 @@ class Axis:
             if vals[i] is not None:
                 env[name] = vals[i][j]
         env["pos"], env["vel"], env["eff"] = self.position, self.velocity, self.effort
-        pos, vel, eff = self._from_device
-        self.position = pos.evaluate(env)
-        self.velocity = vel.evaluate(env)
-        self.effort = eff.evaluate(env)
-        self._supervise()
+        # Expression.evaluate, inline (three calls less per axis per cycle)
+        pos, vel, eff = self._from_raw
+        cpos, cvel, ceff = self._from_const
+        if cpos is None:
+            try:
+                self.position = float(pos(env))
+            except EVALUATION_ERRORS:
+                self.position = math.nan
+        else:
+            self.position = cpos
+        if cvel is None:
+            try:
+                self.velocity = float(vel(env))
+            except EVALUATION_ERRORS:
+                self.velocity = math.nan
+        else:
+            self.velocity = cvel
+        if ceff is None:
+            try:
+                self.effort = float(eff(env))
+            except EVALUATION_ERRORS:
+                self.effort = math.nan
+        else:
+            self.effort = ceff
+        # _supervise has nothing to do while the drive stays in the state it
+        # was brought to and nothing else is asked
+        state = self.state
+        if state is not self.held_state or self.target_state is not None:
+            self._supervise()
 
     def _supervise(self) -> None:
         state, target = self.state, self.target_state
@@ -435,15 +492,17 @@ class Axis:
         # never cut the power of a drive that may be moving.
         what = "fault" if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else state.value
         if what != "fault":
-            self.stopped_by_drive = True
+            self.quick_stop_hold = True
         self.set_error("drive left %s, now %s%s" % (held.value, what, self._emcy_suffix() if what == "fault" else ""))
 
     def _emcy_suffix(self) -> str:
         return (": " + self.last_emcy) if self.last_emcy else ""
 
-    def set_error(self, text: str) -> None:
+    def set_error(self, text: str, sight_lost: bool = False) -> None:
         """The driver's reaction to anything wrong with this axis: report it
         and stop in place (see stop_in_place)."""
+        if sight_lost:
+            self.quick_stop_hold = True
         if self.error is None:
             log.error("%s (node %d): %s", self.name, self.node_id, text)
             self.error = text
@@ -485,6 +544,9 @@ class Axis:
             # the position reference is gone.
             if not (self.error or "").startswith(_REBOOTED):
                 self.error = None
+                # no quick stop hold: a drive that really rebooted is in
+                # Switch On Disabled, where enable operation does nothing,
+                # and one a forged boot-up named is held where it is
                 self.set_error(_REBOOTED + " (boot-up message received): its position reference and "
                                "configuration are lost")
             return
@@ -493,15 +555,15 @@ class Axis:
         if self.heartbeat_ms > 0 and now - self.last_heartbeat > 1.5 * self.heartbeat_ms / 1000.0 + 2 * period:
             self.nmt_state = "LOST"
             self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
-                           % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms))
+                           % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms), sight_lost=True)
         elif self.nmt_state in ("STOPPED", "PRE-OPERATIONAL"):
-            self.set_error("node left OPERATIONAL (heartbeat says %s)" % self.nmt_state)
+            self.set_error("node left OPERATIONAL (heartbeat says %s)" % self.nmt_state, sight_lost=True)
         elif cycle - self.status_seen_cycle >= pdo_cycles and now - self.status_seen > pdo_timeout:
             # Counted in cycles too, so that a stall of this process (no
             # SYNC sent) is not taken for a silent drive.
             self.nmt_state = "LOST"
             self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
-                cycle - self.status_seen_cycle, (now - self.status_seen) * 1000))
+                cycle - self.status_seen_cycle, (now - self.status_seen) * 1000), sight_lost=True)
 
     def _count(self, what: str, n: int = 1) -> None:
         self.counters[what] += n
@@ -544,7 +606,7 @@ class Axis:
     def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
         self.target_state = state
         self.fault_reset = fault_reset
-        self.stopped_by_drive = False
+        self.quick_stop_hold = False
         # Only a statusword that comes after the request confirms it: the
         # last one may be stale (a drive that left PDO exchange quick-stopped
         # meanwhile) and would end the request at once.
@@ -567,8 +629,19 @@ class Axis:
 
     def _set_out(self, key: ObjectKey, value: int) -> None:
         """An object's value in every RxPDO that carries it (none: no-op)."""
+        vals, dirty = self._out_vals, self._rx_dirty
         for i, j in self._out_at.get(key, ()):
-            self._out_vals[i][j] = value
+            if vals[i][j] != value:
+                vals[i][j] = value
+                dirty[i] = True
+
+    def _set_target(self, kind: str, value: int) -> None:
+        """_set_out for a command kind's target object (positions worked out at attach)."""
+        vals, dirty = self._out_vals, self._rx_dirty
+        for i, j in self._target_out[kind]:
+            if vals[i][j] != value:
+                vals[i][j] = value
+                dirty[i] = True
 
     def clear_error(self, statusword: int) -> None:
         """An error cleared (recover), ``statusword`` read over SDO just now.
@@ -579,7 +652,7 @@ class Axis:
         self.rebooted = False
         self.halted = False
         self.last_refusal = ""
-        self.stopped_by_drive = False
+        self.quick_stop_hold = False
         self.state = None
         self.held_state = None
         self._last_cw = holding_controlword(statusword)
@@ -587,7 +660,16 @@ class Axis:
     # --------------------------------------------------------- commands
     def apply_command(self, kind: str, value: float) -> Result:
         """A command from a controller, checked again now that it is applied."""
-        problem = command_problem(self, kind, value)
+        mode = _mode_get(self.active_mode)
+        # The common case decided in one expression: every condition of
+        # command_problem holds. Anything else takes command_problem for
+        # the reason (same checks, same order of messages).
+        if not (type(value) is float and _isfinite(value) and mode is not None and mode.command_kind == kind
+                and not self.error and self.ready and not self.halted and self.state is _ENABLED
+                and not self.homing):
+            problem = command_problem(self, kind, value)
+        else:
+            problem = None
         if problem:
             self._count("refused_commands")
             self.last_refusal = problem
@@ -603,12 +685,13 @@ class Axis:
         self.command_kind = kind
         self.command_value = value
         self.command_raw = raw
-        if self.active_mode == PROFILE_POSITION.number:
+        if mode is PROFILE_POSITION:
             self._ppm_pending = raw
-        return ok("clipped to the joint limits (%s)" % self.limits.describe() if clipped else "")
+        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if clipped else OK
 
     # ------------------------------------------------------------ write
-    def _controlword(self) -> int:
+    def _controlword(self, mode: Any = None) -> int:
+        """The next controlword; ``mode`` is mode_of(active_mode) (write has it)."""
         state = self.state
         target = self.target_state
         if state is None:
@@ -626,9 +709,10 @@ class Axis:
                 cw |= cia402.CW_HALT
             return cw
         cw = self._hold_cw()
-        if self.held_state != State.OPERATION_ENABLED or self.halted:
+        if self.held_state is not _ENABLED or self.halted:
             return cw
-        mode = mode_of(self.active_mode)
+        if mode is None:
+            mode = _mode_get(self.active_mode)
         if mode is None or self.mode_display != mode.number:
             return cw
         if mode is HOMING:
@@ -639,14 +723,17 @@ class Axis:
         return cw
 
     def _hold_cw(self) -> int:
-        if self.stopped_by_drive:
+        if self.quick_stop_hold:
             # Enable operation would take Quick Stop Active back to
             # Operation Enabled (transition 16, quick stop options 5-8) and
-            # Switched On to it; quick stop is no transition in the states a
-            # drive stops in, and a ramp to rest if a lying statusword hid
-            # that the drive still runs. Never disable voltage: that coasts.
+            # Switched On to it, the moment the drive takes PDOs again; quick
+            # stop is no transition in the states a drive stops in, and a
+            # ramp to rest if it still runs unseen or a lying statusword hid
+            # that it does. Never disable voltage: that coasts.
             return cia402.CW_QUICK_STOP
         held = self.held_state
+        if held is _ENABLED:  # the running case, without hashing the enum
+            return cia402.CW_ENABLE_OPERATION | cia402.CW_HALT if self.halted else cia402.CW_ENABLE_OPERATION
         cw = _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE) if held is not None else self._last_cw & ~cia402.CW_FAULT_RESET_BIT
         if held == State.OPERATION_ENABLED and self.halted:
             cw |= cia402.CW_HALT
@@ -685,53 +772,74 @@ class Axis:
         """Fill the RxPDOs from this axis's own fields and send those that
         changed; the controlword PDO and the cyclic target's PDO go out
         every cycle."""
-        mode = mode_of(self.active_mode)
+        mode = _mode_get(self.active_mode)
         cyclic_rx = -1
-        if mode is not None and mode.cyclic:
+        if mode is not None:
             kind = mode.command_kind
-            if self.command_kind == kind and not self.halted:
-                if self.converter.dynamic[kind]:
-                    raw, err = self.converter.convert(kind, self.command_value, self.env)
-                    if err:
-                        # An object the conversion reads changed: stop where
-                        # we are rather than send garbage.
-                        self.set_error(err)
-                    else:
-                        self.command_raw = raw
-                if not self.halted:
-                    self._set_out(TARGET_OF_KIND[kind], self.command_raw)
-            cyclic_rx = self._cyclic_rx.get(TARGET_OF_KIND[kind], -1)
-        elif mode is not None and mode.command_kind == "velocity" and self.command_kind == "velocity" \
-                and not self.halted:
-            self._set_out(TARGET_VELOCITY, self.command_raw)
-        cw = self._controlword()
-        for i, j in self._out_at[CONTROLWORD]:
-            self._out_vals[i][j] = cw
+            if mode.cyclic:
+                if self.command_kind == kind and not self.halted:
+                    if self.converter.dynamic[kind]:
+                        raw, err = self.converter.convert(kind, self.command_value, self.env)
+                        if err:
+                            # An object the conversion reads changed: stop where
+                            # we are rather than send garbage.
+                            self.set_error(err)
+                        else:
+                            self.command_raw = raw
+                    if not self.halted:
+                        raw = self.command_raw
+                        vals, dirty = self._out_vals, self._rx_dirty
+                        for i, j in self._target_out[kind]:  # _set_target, inline: every cycle
+                            if vals[i][j] != raw:
+                                vals[i][j] = raw
+                                dirty[i] = True
+                cyclic_rx = self._cyclic_rx_of[kind]
+            elif kind == "velocity" and self.command_kind == "velocity" and not self.halted:
+                self._set_target("velocity", self.command_raw)
+        if cyclic_rx >= 0 and self.target_state is None and self.held_state is _ENABLED \
+                and self.state is not None and not self.halted:
+            cw = cia402.CW_ENABLE_OPERATION  # what _controlword answers in a running cyclic mode
+        else:
+            cw = self._controlword(mode)
+        vals, dirty = self._out_vals, self._rx_dirty
+        for i, j in self._cw_out:
+            if vals[i][j] != cw:
+                vals[i][j] = cw
+                dirty[i] = True
         self._last_cw = cw
         # The controlword PDO goes out every cycle, as with ros_canopen, so
         # drive and master stay in step even if a frame was lost; the cyclic
         # target's PDO too; the others when they change and every REFRESH
-        # cycles.
+        # cycles. A PDO is packed again only when a value in it changed
+        # (after a pack, the last frame sent holds exactly these values).
         self._tick += 1
         refresh = self._tick % REFRESH_CYCLES == 0
         last = self._rx_last
-        vals = self._out_vals
-        for i, rpdo in enumerate(self._rx):
-            data = rpdo.pack(vals[i])
-            if data != last[i] or i == self._cw_rx or i == cyclic_rx or refresh:
-                last[i] = data
-                send(rpdo.cob_id, data)
+        cw_rx = self._cw_rx
+        i = -1
+        for cob_id, pack in self._rx_codec:
+            i += 1
+            if dirty[i]:
+                data = pack(*vals[i])
+                dirty[i] = False
+                if data != last[i] or i == cw_rx or i == cyclic_rx or refresh:
+                    last[i] = data
+                    send(cob_id, data)
+            elif i == cw_rx or i == cyclic_rx or refresh:
+                send(cob_id, last[i])
 
     # --------------------------------------------------------- snapshot
     def snapshot(self) -> AxisSnapshot:
-        return AxisSnapshot(
-            self.name, self.node_id, self.cfg.key, self.position, self.velocity, self.effort, self.raw_position,
+        # tuple.__new__ straight from the field values: what AxisSnapshot(...)
+        # does, minus its Python-level __new__ (this runs per axis per cycle)
+        return _tuple_new(AxisSnapshot, (
+            self.name, self.node_id, self.key, self.position, self.velocity, self.effort, self.raw_position,
             self.statusword, self.state, self.mode_display, self.active_mode, self.nmt_state, self.error,
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
             self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
             self.command_value, self.last_refusal,
             self._tx_keys, tuple(self._tx_vals),
-            self._counters(), self.limits, self.plan, self.status_seen_cycle)
+            self._counters_view or self._counters(), self.limits, self.plan, self.status_seen_cycle))
 
     def _counters(self) -> Mapping[str, int]:
         view = self._counters_view

@@ -62,6 +62,9 @@ _SDO_ATTEMPTS = 3
 _KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 CycleCallback = Callable[["Driver"], None]
+_get_ident = threading.get_ident
+_monotonic = time.monotonic
+_tuple_new = tuple.__new__
 
 # Objects set_object refuses, and why: the driver configures or sends them
 # itself, or writing them would act on the drive's memory.
@@ -276,6 +279,7 @@ class Driver:
             None, 0)
         self._inbox: "queue.SimpleQueue[Any]" = queue.SimpleQueue()
         self._cond = threading.Condition()
+        self._waiters = 0  # threads in _wait (under _cond): the cycle notifies only when there are some
         self._service = threading.Lock()
         self._sdo_locks = {name: threading.Lock() for name in self._nodes}
         self._cache: Dict[str, Dict[ObjectKey, Any]] = {name: {} for name in self._nodes}  # under the SDO lock
@@ -304,6 +308,7 @@ class Driver:
         self.overruns = 0
         self.bus_error: Optional[str] = None
         self._send_failures = 0
+        self._out_frames: Dict[int, can.Message] = {}  # COB-ID -> the message _send reuses (cycle thread)
         self._foreign_frames = [0]  # written by the notifier thread only
 
     # ============================================================ lookup
@@ -359,10 +364,16 @@ class Driver:
         """A controller's command for a joint, in ROS units. Checked at once
         against the latest snapshot and again when the cycle applies it; the
         last command before a cycle wins. Saturated to the joint limits."""
+        if _get_ident() == self._cycle_ident:
+            # a cycle callback (the trajectory controller), every cycle for
+            # every joint: the axis by its name first, the lookups after
+            axis = self._axis.get(name)
+            if axis is not None:
+                return axis.apply_command(kind, value)
         n = self._name(name)
         if n is None:
             return self._unknown(name)
-        if threading.get_ident() == self._cycle_ident:
+        if _get_ident() == self._cycle_ident:
             axis = self._axis.get(n)
             if axis is None:
                 return fail("%s is not initialized: call init" % n)
@@ -565,8 +576,18 @@ class Driver:
             bus.shutdown()
 
     def _send(self, cob_id: int, data: bytes) -> None:
+        """An RxPDO from the cycle thread (the only caller). One can.Message
+        per COB-ID is reused, its bytes overwritten, as SyncProducer does:
+        python-can's send turns the message into a frame before it returns
+        (the virtual bus copies it), and building a Message per frame was a
+        large part of the cycle."""
+        msg = self._out_frames.get(cob_id)
+        if msg is None or len(msg.data) != len(data):
+            msg = self._out_frames[cob_id] = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False)
+        else:
+            msg.data[:] = data
         try:
-            self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False))
+            self.bus.send(msg)
         except (can.CanError, OSError) as e:
             self._send_error = e
 
@@ -663,25 +684,27 @@ class Driver:
     def cycle(self) -> None:
         """One control cycle: inbox, readings, snapshot, callbacks, RPDOs and
         SYNC. Never raises: a failing part is logged and the rest runs."""
-        self._cycle_no += 1
-        cycle_no = self._cycle_no
-        now = time.monotonic()
+        self._cycle_no = cycle_no = self._cycle_no + 1
+        now = _monotonic()
         self._send_error = None
-        try:
-            self._drain()
-        except Exception:
-            log.exception("driver inbox failed")
+        if not self._inbox.empty():  # the usual cycle has no message: no get/Empty round
+            try:
+                self._drain()
+            except Exception:
+                log.exception("driver inbox failed")
         receiver = self._receiver
+        period, pdo_timeout = self._period, self._pdo_timeout
         snaps = {}
         for axis in self._axes:
             try:
                 if axis.attached:
                     axis.read(receiver, now, cycle_no)
-                    axis.watch(now, cycle_no, self._period, self._pdo_timeout, _PDO_MISSING_CYCLES)
+                    axis.watch(now, cycle_no, period, pdo_timeout, _PDO_MISSING_CYCLES)
             except Exception:
                 log.exception("%s: reading failed", axis.name)
             snaps[axis.name] = axis.snapshot()
-        self._snapshot = DriverSnapshot(cycle_no, MappingProxyType(snaps), self.bus_error, self._foreign_frames[0])
+        self._snapshot = _tuple_new(DriverSnapshot, (cycle_no, MappingProxyType(snaps), self.bus_error,
+                                                     self._foreign_frames[0]))
         for fn in self._callbacks:
             try:
                 fn(self)
@@ -699,9 +722,15 @@ class Driver:
                 self.sync.send()
             except (can.CanError, OSError) as e:
                 self._send_error = e
-        self._watch_bus()
-        with self._cond:
-            self._cond.notify_all()
+        if self._send_error is None:  # _watch_bus's usual answer, without the call
+            self._send_failures = 0
+        else:
+            self._watch_bus()
+        # _wait counts itself in before it looks at the snapshot, so a
+        # waiter that is not counted yet will see this cycle's snapshot.
+        if self._waiters:
+            with self._cond:
+                self._cond.notify_all()
 
     def _watch_bus(self) -> None:
         e = self._send_error
@@ -713,7 +742,7 @@ class Driver:
             self.bus_error = str(e)
             log.error("CAN bus error in 10 cycles in a row: %s", e)
             for axis in self._axes:
-                axis.set_error("bus error: %s" % e)
+                axis.set_error("bus error: %s" % e, sight_lost=True)
 
     # ============================================================= waits
     def _wait(self, pred: Callable[[DriverSnapshot], bool], timeout: float, after: int = -1) -> bool:
@@ -724,11 +753,15 @@ class Driver:
             snap = self._snapshot
             return snap.cycle > after and pred(snap)
         with self._cond:
-            while not done():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._thread is None or self._abort.is_set():
-                    return done()
-                self._cond.wait(min(remaining, 0.5))
+            self._waiters += 1
+            try:
+                while not done():
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or self._thread is None or self._abort.is_set():
+                        return done()
+                    self._cond.wait(min(remaining, 0.5))
+            finally:
+                self._waiters -= 1
         return True
 
     def _wait_cycles(self, n: int) -> None:

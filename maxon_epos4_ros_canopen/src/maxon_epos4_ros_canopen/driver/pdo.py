@@ -47,12 +47,14 @@ def _layout(od: ObjectDictionary, entries: Sequence[Tuple[ObjectKey, int]]) -> T
 class RxPdo:
     """One PDO the driver sends: its COB-ID and the objects it carries."""
 
-    __slots__ = ("number", "cob_id", "keys", "_st")
+    __slots__ = ("number", "cob_id", "keys", "_st", "pack_args")
 
     def __init__(self, od: ObjectDictionary, plan: MapPlan) -> None:
         self.number = plan.number
         self.cob_id = plan.cob_id
         self._st, self.keys = _layout(od, plan.entries)
+        # the prepared struct's own pack, for the cycle: one C call per frame
+        self.pack_args = self._st.pack
 
     def pack(self, values: Sequence[int]) -> bytes:
         """The frame for values given in the order of ``keys``."""
@@ -62,13 +64,15 @@ class RxPdo:
 class TxPdo:
     """One PDO the drive sends; decode() refuses a frame of the wrong length."""
 
-    __slots__ = ("number", "cob_id", "keys", "length", "_st")
+    __slots__ = ("number", "cob_id", "keys", "length", "_st", "unpack")
 
     def __init__(self, od: ObjectDictionary, plan: MapPlan) -> None:
         self.number = plan.number
         self.cob_id = plan.cob_id
         self._st, self.keys = _layout(od, plan.entries)
         self.length = self._st.size
+        # the prepared struct's own unpack (callers check ``length`` first)
+        self.unpack = self._st.unpack
 
     def decode(self, data: bytes) -> Optional[Tuple[Any, ...]]:
         if len(data) != self.length:
