@@ -389,3 +389,19 @@ def test_a_drive_out_of_sight_is_held_with_quick_stop(h):
     assert "no statusword" in h.axis.error
     h.axis.write(lambda cob, data: h.last.update({cob: data}))
     assert h.controlword() & 0x8F == 0x0002
+
+
+def test_an_emcy_storm_is_a_few_log_lines_a_second_and_a_count(h, caplog):
+    # forged EMCYs with every code: the cycle thread writes the log lines,
+    # and a storm of them would starve it
+    with caplog.at_level("INFO", logger="maxon_epos4_ros_canopen.driver"):
+        for code in range(1, 201):
+            h.axis.on_emcy(struct.pack("<HB5s", code, 0x01, bytes(5)), now=5.0)
+            h.axis.on_emcy(bytes(8), now=5.0)   # and error resets
+    lines = [r for r in caplog.records if "EMCY" in r.getMessage()]
+    assert 1 <= len(lines) <= 5
+    assert h.axis.counters["emcy_not_logged"] == 400 - len(lines)
+    caplog.clear()
+    with caplog.at_level("INFO", logger="maxon_epos4_ros_canopen.driver"):
+        h.axis.on_emcy(struct.pack("<HB5s", 0x8611, 0x81, bytes(5)), now=6.5)  # a second later: logged
+    assert any("0x8611" in r.getMessage() for r in caplog.records)

@@ -64,6 +64,7 @@ def holding_controlword(statusword: int) -> int:
 
 
 _REBOOTED = "node rebooted"
+EMCY_LOG_LINES = 5  # EMCY log lines per second and axis at most
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
@@ -272,7 +273,7 @@ class Axis:
         self._tick = 0
         self.counters: Dict[str, int] = {"bad_tpdo": 0, "undefined_statusword": 0, "undefined_nmt_state": 0,
                                          "bad_heartbeat": 0, "bad_emcy": 0, "refused_commands": 0,
-                                         "clipped_commands": 0}
+                                         "clipped_commands": 0, "emcy_not_logged": 0}
         self._counters_view: Optional[Mapping[str, int]] = None
         self._rx: Tuple[RxPdo, ...] = ()
         self._tx: Tuple[TxPdo, ...] = ()
@@ -301,6 +302,8 @@ class Axis:
         self._cyclic_rx_of: Dict[str, int] = {}                          # command kind -> its target's RxPDO
         self._fresh_after = 0.0
         self._emcy_logged = -1e9
+        self._emcy_window = -1e9   # start of the current second of EMCY log lines
+        self._emcy_lines = 0
         self._display_mapped = True
 
     # ---------------------------------------------------------- binding
@@ -592,15 +595,28 @@ class Axis:
         code = data[0] | data[1] << 8
         self.error_register = data[2]
         if code == 0:
-            log.info("%s (node %d): EMCY error reset", self.name, self.node_id)
+            if self._may_log_emcy(now):
+                log.info("%s (node %d): EMCY error reset", self.name, self.node_id)
             return
         text = "%s (error register 0x%02X)" % (describe_error(code), data[2])
-        # A storm of EMCYs (a drive in trouble, or forged frames) must not
-        # turn into a storm of log lines: each text at most once a second.
-        if text != self.last_emcy or now - self._emcy_logged > 1.0:
+        if (text != self.last_emcy or now - self._emcy_logged > 1.0) and self._may_log_emcy(now):
             self._emcy_logged = now
             log.error("%s (node %d): EMCY %s", self.name, self.node_id, text)
         self.last_emcy = text
+
+    def _may_log_emcy(self, now: float) -> bool:
+        """A storm of EMCYs (a drive in trouble, or forged frames with every
+        code) must not become a storm of log lines: they are written by the
+        cycle thread, and a log line costs far more than a cycle. At most
+        EMCY_LOG_LINES a second per axis; the others are counted."""
+        if now - self._emcy_window >= 1.0:
+            self._emcy_window = now
+            self._emcy_lines = 0
+        if self._emcy_lines >= EMCY_LOG_LINES:
+            self._count("emcy_not_logged")
+            return False
+        self._emcy_lines += 1
+        return True
 
     # --------------------------------------------------------- requests
     def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
