@@ -175,6 +175,12 @@ def main() -> int:
         if args.init_only:
             run = run_driver(bus, args.axes, args.layout, switch=False)
             out.update({"ok": True, "init_s": run["init_s"]})
+            # The figure is taken: the process ends here. Shutting down 127
+            # axes through a 10 ms cycle is more than this process's CPU
+            # (that is what --init-only is for), and would hang the run.
+            out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+            print(json.dumps(out), flush=True)
+            os._exit(0)
         else:
             run = run_driver(bus, args.axes, args.layout) if args.impl == "driver" else run_baseline(bus, args.axes)
             time.sleep(0.5)  # settle: mode switch done, targets moving
