@@ -381,6 +381,20 @@ class Axis:
         self.attached = True
         self.hold(binding.raw_position)
 
+    def enabled_over_sdo(self, statusword: int) -> None:
+        """The drive was brought to Operation Enabled over SDO before the
+        cycle started (init), its statusword and, with a mode set, its 0x6061
+        read back by SDO: the axis holds that state from its first RxPDO on,
+        with the targets ``attach`` held."""
+        self.statusword = statusword
+        self.state = self.held_state = State.OPERATION_ENABLED
+        self.target_state = None
+        self.fault_reset = False
+        self._last_cw = cia402.CW_ENABLE_OPERATION
+        self._set_out(CONTROLWORD, cia402.CW_ENABLE_OPERATION)
+        if self.active_mode is not None:
+            self.mode_display = self.active_mode
+
     def detach(self) -> None:
         """Stop touching the node (it is being configured over SDO)."""
         self.attached = False

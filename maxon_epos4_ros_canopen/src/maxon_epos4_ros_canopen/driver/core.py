@@ -25,7 +25,8 @@ import queue
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
 from types import MappingProxyType
 from typing import Any, Callable, Dict, Iterable, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
@@ -47,7 +48,7 @@ from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, comm
                    holding_controlword, initial_snapshot)
 from .bus import HeartbeatProducer, SyncProducer, is_socketcan, open_bus
 from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
-                    VELOCITY_ACTUAL, mode_of, supported_modes_text)
+                    TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, VELOCITY_ACTUAL, mode_of, supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
@@ -61,6 +62,15 @@ _STANDSTILL = 2  # |0x606C| at or below this is standing still
 _SDO_ATTEMPTS = 3
 _KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
+# Nodes init configures at once: each has its own SDO client and lock, the
+# bus interleaves their transfers.
+_INIT_WORKERS = 32
+# Controlwords init may write on the way to Operation Enabled: fault reset
+# (two), shutdown, switch on, enable operation, and one fault on the way.
+_ENABLE_STEPS = 8
+_COMMAND_NAMES = {cia402.CW_DISABLE_VOLTAGE: "disable voltage", cia402.CW_QUICK_STOP: "quick stop",
+                  cia402.CW_SHUTDOWN: "shutdown", cia402.CW_SWITCH_ON: "switch on",
+                  cia402.CW_ENABLE_OPERATION: "enable operation", cia402.CW_FAULT_RESET: "fault reset"}
 CycleCallback = Callable[["Driver"], None]
 _get_ident = threading.get_ident
 _monotonic = time.monotonic
@@ -78,6 +88,17 @@ _REFUSED_RANGES = (
 
 class _InitError(Exception):
     pass
+
+
+class _Timeout(Exception):
+    """A drive did not show what init waited for (the text: what it shows)."""
+
+
+def _state_of(statusword: int) -> Optional[State]:
+    try:
+        return cia402.state_from_statusword(statusword)
+    except ValueError:
+        return None
 
 
 # ----------------------------------------------------------------- messages
@@ -942,44 +963,207 @@ class Driver:
             log.warning("%s", warning)
         self._open()
         names = list(self._nodes)
-        axes = []
-        methods = {}
+        # Everything init needs from a node is read while it is configured,
+        # all nodes at once; none is enabled unless every one is configured.
+        prepared = self._each_node(names, self._prepare)
+        # A mode requested before init is set before enabling; a node that
+        # homes first gets it after homing, through the cycle, as before.
+        modes = {name: None if prepared[name][1] else self._requested_modes[name] for name in names}
+        enabled = self._enable_all(names, {name: prepared[name][0] for name in names}, modes)
+        try:
+            axes = []
+            now = time.monotonic()
+            for name in names:
+                node = self._nodes[name]
+                binding, statusword = enabled[name]
+                axis = Axis(node.cfg, node.od, node.plan, self._limits[name])
+                axis.active_mode = modes[name]
+                axis.attach(binding, self._cycle_no, now)
+                axis.enabled_over_sdo(statusword)
+                axis.ready = True
+                axes.append(axis)
+            for axis in axes:
+                self._nmt(NMT_START, axis.node_id)
+            now = time.monotonic()
+            for axis in axes:
+                axis.last_heartbeat = axis.status_seen = now
+            # The axes are this thread's until the cycle starts: their first
+            # snapshot shows them enabled and ready without waiting for it.
+            self._cycle_no += 1
+            self._snapshot = DriverSnapshot(self._cycle_no, MappingProxyType({a.name: a.snapshot() for a in axes}),
+                                            self.bus_error, self._foreign_frames[0])
+            self._start_cycle(axes)
+        except BaseException:
+            if self._thread is None:  # no cycle to disable them: do it over SDO
+                problems = self._disable_all(names)
+                if problems:
+                    log.error("init: %s", "; ".join(problems))
+            raise
         for name in names:
-            node = self._nodes[name]
-            axis = Axis(node.cfg, node.od, node.plan, self._limits[name])
-            axis.active_mode = None
-            binding = self._configure(name)
-            try:
-                methods[name] = int(self._upload(name, HOMING_METHOD)) if HOMING_METHOD.index in node.od else 0
-            except (SdoAbortedError, SdoCommunicationError) as e:
-                raise _InitError("%s: reading the homing method 0x6098: %s" % (name, e)) from None
-            axis.attach(binding, 0, time.monotonic())
-            axes.append(axis)
-        for axis in axes:
-            self._nmt(NMT_START, axis.node_id)
-        now = time.monotonic()
-        for axis in axes:
-            axis.last_heartbeat = axis.status_seen = now
-        self._start_cycle(axes)
-        err = self._go(names, State.OPERATION_ENABLED, fault_reset=True)
-        if err:
-            raise _InitError("enable failed: " + err)
-        self._wait(lambda s: True, 1.0, self._post(_Ready(tuple(names), True)))
-        for name in names:
-            if methods[name]:
-                r = self._home(name, methods[name])
+            method = prepared[name][1]
+            if method:
+                r = self._home(name, method)
                 if not r:
                     raise _InitError(r.message)
-        for name in names:
-            mode = self._requested_modes[name]
-            if mode is not None:
-                r = self._switch(name, mode, force=True)
-                if not r:
-                    raise _InitError(r.message)
+                mode = self._requested_modes[name]
+                if mode is not None:
+                    r = self._switch(name, mode, force=True)
+                    if not r:
+                        raise _InitError(r.message)
         self.initialized = True
         text = ", ".join("%s (node %d, PDOs from %s)" % (n, self._nodes[n].cfg.node_id, self._nodes[n].plan.source)
                          for n in names)
         return ok("initialized " + text)
+
+    def _each_node(self, names: Sequence[str], work: Callable[[str], Any]) -> Dict[str, Any]:
+        """work(name) for every node at once; the results by name, or an
+        _InitError naming every node that failed (each message names the
+        node and the step)."""
+        results, errors = self._each_node_collect(names, work)
+        if errors:
+            raise _InitError("; ".join(errors[n] for n in names if n in errors))
+        return results
+
+    def _each_node_collect(self, names: Sequence[str],
+                           work: Callable[[str], Any]) -> Tuple[Dict[str, Any], Dict[str, str]]:
+        results: Dict[str, Any] = {}
+        errors: Dict[str, str] = {}
+
+        def run(name: str) -> None:
+            try:
+                results[name] = work(name)
+            except _InitError as e:
+                errors[name] = str(e)
+            except Exception as e:  # a bus going away, anything: the node is named all the same
+                log.exception("init of %s", name)
+                errors[name] = "%s (node %d): %s" % (name, self._nodes[name].cfg.node_id, e)
+        if len(names) == 1:
+            run(names[0])
+        elif names:
+            with ThreadPoolExecutor(max_workers=min(len(names), _INIT_WORKERS),
+                                    thread_name_prefix="epos4_init") as pool:
+                list(pool.map(run, names))
+        return results, errors
+
+    def _prepare(self, name: str) -> Tuple[Binding, int]:
+        """One node's configuration (reset, parameters, PDOs, initial values)
+        and its homing method."""
+        binding = self._configure(name)
+        if HOMING_METHOD.index not in self._nodes[name].od:
+            return binding, 0
+        try:
+            return binding, int(self._upload(name, HOMING_METHOD))
+        except (SdoAbortedError, SdoCommunicationError) as e:
+            raise _InitError("%s (node %d): reading the homing method 0x6098 failed: %s"
+                             % (name, self._nodes[name].cfg.node_id, e)) from None
+
+    def _enable_all(self, names: Sequence[str], bindings: Mapping[str, Binding],
+                    modes: Mapping[str, Optional[int]]) -> Dict[str, Tuple[Binding, int]]:
+        """Every node to Operation Enabled over SDO, at once; when one fails,
+        every node is disabled again before the error is raised."""
+        results, errors = self._each_node_collect(names, lambda n: self._enable(n, bindings[n], modes[n]))
+        if errors:
+            problems = [errors[n] for n in names if n in errors]
+            problems.extend(self._disable_all(names))
+            raise _InitError("; ".join(problems))
+        return results
+
+    def _enable(self, name: str, binding: Binding, mode: Optional[int]) -> Tuple[Binding, int]:
+        """Operation Enabled over SDO, before NMT start: the mode (if one was
+        requested) written and confirmed, the targets set to what the cycle's
+        first RxPDOs will carry (the position just read, velocity and torque
+        0), then the CiA 402 walk, each controlword confirmed by reading the
+        statusword. The binding returned starts the RxPDOs there, with
+        controlword enable operation; and the statusword read last."""
+        node = self._nodes[name]
+        nid = node.cfg.node_id
+        step = "reading the statusword 0x6041"
+        try:
+            statusword = int(self._upload(name, STATUSWORD))
+            out = dict(binding.initial_out)
+            if mode is not None:
+                step = "writing modes of operation 0x6060 = %d" % mode
+                self._download(name, MODES_OF_OPERATION.index, 0, mode.to_bytes(1, "little", signed=True))
+                step = "confirming modes of operation display 0x6061 = %d" % mode
+                self._await(name, MODES_DISPLAY, lambda v: v == mode,
+                            "modes of operation display 0x6061 = %%d, not %d" % mode)
+                out[MODES_OF_OPERATION] = mode
+            step = "reading the position actual value 0x6064"
+            position = self._position(name)
+            for key, value in ((TARGET_POSITION, position), (TARGET_VELOCITY, 0), (TARGET_TORQUE, 0)):
+                step = "writing %s = %d (hold)" % (key, value)
+                self._download(name, key.index, key.subindex, find_variable(node.od, key).encode_raw(value))
+                out[key] = value
+            for _ in range(_ENABLE_STEPS):
+                state = _state_of(statusword)
+                if state == State.OPERATION_ENABLED:
+                    break
+                if state == State.FAULT:
+                    # fault reset acts on the rising edge of bit 7
+                    commands: Tuple[int, ...] = (cia402.CW_DISABLE_VOLTAGE, cia402.CW_FAULT_RESET)
+                else:
+                    cw = cia402.next_controlword(state, State.OPERATION_ENABLED) if state is not None else None
+                    commands = (cw,) if cw is not None else ()  # none: the drive moves on by itself
+                for cw in commands:
+                    step = "writing controlword 0x6040 = 0x%04X (%s)" % (cw, _COMMAND_NAMES.get(cw, "?"))
+                    self._download(name, CONTROLWORD.index, 0, cw.to_bytes(2, "little"))
+                step = "waiting to leave %s%s" % (state.value if state else "0x%04X" % statusword,
+                                                  " after " + step[8:] if commands else "")
+                statusword = self._await(name, STATUSWORD, lambda v, s=state: _state_of(v) != s,
+                                         "statusword 0x6041 = 0x%04X")
+            else:
+                raise _InitError("%s (node %d): not operation enabled after %d steps (0x6041 = 0x%04X)"
+                                 % (name, nid, _ENABLE_STEPS, statusword))
+        except SdoAbortedError as e:
+            raise _InitError("%s (node %d): enabling: %s failed: %s" % (name, nid, step, e)) from None
+        except SdoCommunicationError as e:
+            raise _InitError("%s (node %d): no SDO answer while enabling (%s): %s" % (name, nid, step, e)) from None
+        except _Timeout as e:
+            raise _InitError("%s (node %d): enabling: %s: still %s after %g s" % (name, nid, step, e,
+                                                                                  self.state_timeout)) from None
+        out[CONTROLWORD] = cia402.CW_ENABLE_OPERATION
+        return replace(binding, initial_out=MappingProxyType(out), raw_position=position), statusword
+
+    def _await(self, name: str, key: ObjectKey, done: Callable[[int], bool], shows: str) -> int:
+        """Read ``key`` over SDO until ``done(value)``, for at most
+        ``state_timeout``: the drive's own answers, no cycle involved. An
+        EPOS4 changes state within a millisecond, so the first reads come
+        at once and later ones less often."""
+        deadline = time.monotonic() + self.state_timeout
+        pause = 0.0005
+        while True:
+            value = int(self._upload(name, key))
+            if done(value):
+                return value
+            if time.monotonic() > deadline or self._abort.is_set():
+                raise _Timeout(shows % value)
+            time.sleep(pause)
+            pause = min(2 * pause, 0.02)
+
+    def _disable_all(self, names: Sequence[str]) -> List[str]:
+        """Disable every node over SDO (no cycle runs): the problems."""
+        _, errors = self._each_node_collect(names, self._disable)
+        return [errors[n] for n in names if n in errors]
+
+    def _disable(self, name: str) -> None:
+        """An enabled drive first stops on its quick stop ramp (it was
+        holding where it stood: that is at once), then the power goes off;
+        a drive switched on is disabled at once."""
+        nid = self._nodes[name].cfg.node_id
+        step = "reading the statusword 0x6041"
+        try:
+            state = _state_of(int(self._upload(name, STATUSWORD)))
+            if state == State.OPERATION_ENABLED:
+                step = "writing controlword 0x6040 = 0x%04X (quick stop)" % cia402.CW_QUICK_STOP
+                self._download(name, CONTROLWORD.index, 0, cia402.CW_QUICK_STOP.to_bytes(2, "little"))
+                step = "waiting for standstill"
+                self._await(name, VELOCITY_ACTUAL, lambda v: abs(v) <= _STANDSTILL, "velocity %d")
+                state = State.QUICK_STOP_ACTIVE
+            if state in (State.QUICK_STOP_ACTIVE, State.SWITCHED_ON, State.READY_TO_SWITCH_ON):
+                step = "writing controlword 0x6040 = 0x0000 (disable voltage)"
+                self._download(name, CONTROLWORD.index, 0, cia402.CW_DISABLE_VOLTAGE.to_bytes(2, "little"))
+        except (SdoAbortedError, SdoCommunicationError, _Timeout) as e:
+            raise _InitError("%s (node %d): disabling after the failed init: %s: %s" % (name, nid, step, e)) from None
 
     def _home(self, name: str, method: int) -> Result:
         r = self._switch(name, HOMING.number, force=True)
@@ -1244,7 +1428,10 @@ class Driver:
                 if axis is not None:
                     axis.nmt_state = "STOPPED"
         if self._axes:
-            self._snapshot = DriverSnapshot(self._snapshot.cycle + 1, MappingProxyType(
+            # numbered as a cycle, so that a service waiting for a cycle
+            # after its post is not answered by this snapshot
+            self._cycle_no += 1
+            self._snapshot = DriverSnapshot(self._cycle_no, MappingProxyType(
                 {a.name: a.snapshot() for a in self._axes}), self.bus_error, self._foreign_frames[0])
         self._close()
         self.initialized = False

@@ -351,7 +351,7 @@ class VirtualEpos4:
             self._set_mode(value)
             self._publish(self.t)
         elif self.pdos.owns(index):
-            self.pdos.load(self.store)
+            self.pdos.load_one(self.store, index)
             self._routes_changed()
         elif index == 0x1017:
             self._schedule_heartbeat(self.t)

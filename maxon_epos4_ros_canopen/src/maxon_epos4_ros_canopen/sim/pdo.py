@@ -93,6 +93,11 @@ class PdoSet:
         for pdo in self.rpdos + self.tpdos:
             pdo.load(store)
 
+    def load_one(self, store: ObjectStore, index: int) -> None:
+        """Reload the PDO whose parameter ``index`` was written (the others
+        did not change)."""
+        self._by_index[index].load(store)
+
     def owns(self, index: int) -> bool:
         return index in self._by_index
 

@@ -12,7 +12,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Tuple
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 
 import can
 
@@ -72,13 +72,18 @@ class Simulator:
         self._thread: Optional[threading.Thread] = None
         self._routes: Dict[int, List[VirtualEpos4]] = {}
         self._sync_routes: Dict[int, List[VirtualEpos4]] = {}
+        # what each node is routed for now, and the nodes whose COB-IDs may
+        # have changed since (see _rebuild_routes)
+        self._routed: Dict[int, Tuple[Tuple[int, ...], int]] = {}
+        self._changed: Set[int] = set()
         now = clock()
         self.nodes: Dict[int, VirtualEpos4] = {}
         for cfg in nodes:
             od = load_od(cfg.dcf, cfg.node_id)
-            self.nodes[cfg.node_id] = VirtualEpos4(cfg.node_id, od, self._transmit, now,
-                                                   hard_stop=cfg.hard_stop,
-                                                   on_routes_changed=self._mark_routes)
+            self.nodes[cfg.node_id] = VirtualEpos4(
+                cfg.node_id, od, self._transmit, now, hard_stop=cfg.hard_stop,
+                on_routes_changed=lambda node_id=cfg.node_id: self._mark_routes(node_id))
+        self._order = {node_id: i for i, node_id in enumerate(self.nodes)}
         self._routes_dirty = True
 
     # --------------------------------------------------------------- bus
@@ -91,17 +96,40 @@ class Simulator:
         except can.CanError as exc:  # bus full or down: the real drive would retry
             log.warning("send 0x%03X failed: %s", cob_id, exc)
 
-    def _mark_routes(self) -> None:
+    def _mark_routes(self, node_id: Optional[int] = None) -> None:
+        """A node's COB-IDs may have changed (None: any node's)."""
+        self._changed.update(self.nodes if node_id is None else (node_id,))
         self._routes_dirty = True
 
     def _rebuild_routes(self) -> None:
-        routes: Dict[int, List[VirtualEpos4]] = {}
-        syncs: Dict[int, List[VirtualEpos4]] = {}
-        for node in self.nodes.values():
-            for cob in node.cob_ids():
-                routes.setdefault(cob, []).append(node)
-            syncs.setdefault(node.sync_cob, []).append(node)
-        self._routes, self._sync_routes = routes, syncs
+        """Route the changed nodes' COB-IDs anew. Only their own entries
+        move: a master configuring 127 nodes writes thousands of PDO
+        parameters, and routing all nodes again after each one would cost
+        more than everything else the simulator does. Each COB-ID's nodes
+        stay in node order (a SYNC's TPDOs go out in that order)."""
+        changed, self._changed = self._changed, set()
+        order = self._order
+        for node_id in changed:
+            node = self.nodes.get(node_id)
+            if node is None:
+                continue
+            new = (tuple(node.cob_ids()), node.sync_cob)
+            old = self._routed.get(node_id, ((), None))
+            if new == old:
+                continue
+            for table, old_cobs, new_cobs in ((self._routes, old[0], new[0]),
+                                              (self._sync_routes, () if old[1] is None else (old[1],), (new[1],))):
+                for cob in set(old_cobs):
+                    kept = [n for n in table[cob] if n is not node]
+                    if kept:
+                        table[cob] = kept
+                    else:
+                        del table[cob]
+                for cob in new_cobs:
+                    table.setdefault(cob, []).append(node)
+                for cob in set(new_cobs):
+                    table[cob].sort(key=lambda n: order[n.node_id])
+            self._routed[node_id] = new
         self._routes_dirty = False
 
     def handle(self, msg: can.Message, now: float) -> None:
