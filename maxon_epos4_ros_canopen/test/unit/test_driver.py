@@ -595,3 +595,19 @@ def test_a_boot_up_after_another_error_is_still_reported_as_a_reboot(rig):
     r = d.recover()
     assert r.success, r.message
     assert "position reference is lost" in r.message
+
+
+def test_sdo_answers_later_than_the_timeout_still_get_through(rig):
+    """A host that stalls delays a drive's SDO answer past three times sdo_timeout (1 s):
+    each retry waits longer, so services still answer; the cycle (PDOs) is
+    not touched."""
+    d = ppm_ready(rig)
+    rig.sim.inject_fault(1, "sdo_delay", duration=3.5)  # past all three attempts of 1 s
+    try:
+        r = d.set_object(J1, "6083", "12345")
+        assert r.success, r.message
+        r = d.get_object(J1, "6083")
+        assert r.success and r.value == "12345", (r.message, r.value)
+    finally:
+        rig.sim.inject_fault(1, "clear")
+    assert d.joints[J1].error is None

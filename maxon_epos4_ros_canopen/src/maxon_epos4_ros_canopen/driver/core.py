@@ -834,15 +834,23 @@ class Driver:
         for (another client on the same SDO channel, a user's tool or a test
         probe, or a stray frame can take an answer) or did not come in time
         (a loaded host). Every transfer the driver makes may be repeated:
-        reads, and writes of a value. An abort is final."""
+        reads, and writes of a value. An abort is final. Each attempt waits
+        longer than the one before (1, 2, 3 × sdo_timeout): a drive whose
+        answer came late once, on a host that stalled, gets the time, and
+        the late answer to the same request still counts."""
         with self._sdo_locks[name]:
-            for attempt in range(_SDO_ATTEMPTS):
-                try:
-                    return transfer(self._sdo[name])
-                except SdoCommunicationError as e:
-                    if attempt + 1 == _SDO_ATTEMPTS:
-                        raise
-                    log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
+            client = self._sdo[name]
+            try:
+                for attempt in range(_SDO_ATTEMPTS):
+                    client.RESPONSE_TIMEOUT = self.sdo_timeout * (attempt + 1)
+                    try:
+                        return transfer(client)
+                    except SdoCommunicationError as e:
+                        if attempt + 1 == _SDO_ATTEMPTS:
+                            raise
+                        log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
+            finally:
+                client.RESPONSE_TIMEOUT = self.sdo_timeout
 
     def _write_u32(self, name: str, index: int, sub: int, value: int) -> None:
         self._download(name, index, sub, value.to_bytes(4, "little"))
