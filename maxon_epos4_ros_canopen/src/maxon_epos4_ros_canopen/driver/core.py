@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import random
 import threading
 import time
 from collections import OrderedDict
@@ -59,7 +60,8 @@ NMT_START, NMT_STOP, NMT_ENTER_PRE_OPERATIONAL, NMT_RESET_NODE = 0x01, 0x02, 0x8
 _PDO_MISSING_CYCLES = 50
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
-_SDO_ATTEMPTS = 3
+_SDO_ATTEMPTS = 3  # tries of a transfer whose answer did not come
+_SDO_FOREIGN_ANSWERS = 7  # more tries when the answer was another client's
 _KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
 # Nodes init configures at once: each has its own SDO client and lock, the
@@ -837,18 +839,28 @@ class Driver:
         reads, and writes of a value. An abort is final. Each attempt waits
         longer than the one before (1, 2, 3 × sdo_timeout): a drive whose
         answer came late once, on a host that stalled, gets the time, and
-        the late answer to the same request still counts."""
+        the late answer to the same request still counts.
+        An answer for another object means another client is busy on the
+        same channel: the next try comes after a short random pause, so two
+        clients polling the drive do not meet again at once."""
         with self._sdo_locks[name]:
             client = self._sdo[name]
+            late = 0
             try:
-                for attempt in range(_SDO_ATTEMPTS):
-                    client.RESPONSE_TIMEOUT = self.sdo_timeout * (attempt + 1)
+                for attempt in range(_SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS):
+                    client.RESPONSE_TIMEOUT = self.sdo_timeout * (late + 1)
                     try:
                         return transfer(client)
                     except SdoCommunicationError as e:
-                        if attempt + 1 == _SDO_ATTEMPTS:
+                        # canopen: "Node returned a value for ... instead",
+                        # "Unexpected response 0x4F": another client's answer
+                        foreign = "instead" in str(e) or "Unexpected response" in str(e)
+                        late += 0 if foreign else 1
+                        if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
                             raise
                         log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
+                        if foreign:
+                            time.sleep(random.uniform(0.005, 0.05))
             finally:
                 client.RESPONSE_TIMEOUT = self.sdo_timeout
 
