@@ -3,6 +3,7 @@ virtual bus: frames on the bus and values in the simulated drive's object
 dictionary are what the tests look at."""
 import math
 import os
+import threading
 import time
 
 import can
@@ -611,3 +612,45 @@ def test_sdo_answers_later_than_the_timeout_still_get_through(rig):
     finally:
         rig.sim.inject_fault(1, "clear")
     assert d.joints[J1].error is None
+
+
+class _SlowReader(can.Listener):
+    """Makes the driver's CAN notifier thread slow for ``seconds``, as a
+    loaded host does: every frame costs it ``per_frame`` s, more than the
+    frames' spacing, so they queue up and are read later and later."""
+
+    def __init__(self, seconds, per_frame):
+        self.seconds, self.per_frame = seconds, per_frame
+        self.until = None
+        self.done = threading.Event()
+
+    def start(self):
+        self.until = time.monotonic() + self.seconds
+
+    def on_message_received(self, msg):
+        if self.until is None or self.done.is_set():
+            return
+        if time.monotonic() < self.until:
+            time.sleep(self.per_frame)
+        else:
+            self.done.set()
+
+
+def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(rig):
+    """The drive's heartbeats were on the bus all along; only the driver read
+    them late (up to about a second). The watchdog judges by when they
+    arrived, and trips only once the driver has read past the moment one
+    was due; a heartbeat that really stops still trips it."""
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "200"}})
+    slow = _SlowReader(2.0, 0.01)  # frames come every few ms: the backlog grows past 1.5 x 200 ms + 2 cycles
+    d.network.notifier.add_listener(slow)
+    slow.start()
+    assert slow.done.wait(30.0)
+    # the queue worked off and 100 more cycles (several heartbeat periods):
+    # nothing may have tripped
+    after = d.snapshot().cycle + 100
+    assert until(lambda: d.snapshot().cycle >= after, 10.0)
+    assert d.joints[J1].error is None, d.joints[J1].error
+    rig.sim.inject_fault(1, "heartbeat_stop")
+    assert until(lambda: d.joints[J1].error is not None, 2.0)
+    assert "heartbeat lost" in d.joints[J1].error

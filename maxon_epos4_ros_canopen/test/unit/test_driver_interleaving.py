@@ -17,6 +17,7 @@ from test_driver import J1, Rig, ppm_ready, until
 
 DRIVER_DIR = os.path.dirname(os.path.abspath(core.__file__))
 
+CYCLE_THREAD = "epos4_driver_cycle"
 HANDSHAKE_CYCLES = 4  # profile position: target, edge, acknowledge, edge cleared
 
 
@@ -38,6 +39,10 @@ class CycleStepper:
         self.armed = [cycle_offset, line]
 
     def global_trace(self, frame, event, arg):
+        # threading.settrace reaches every thread init starts: the CAN
+        # notifier's lines must neither count nor be stopped at
+        if threading.current_thread().name != CYCLE_THREAD:
+            return None
         code = frame.f_code
         if code is self.cycle_code:
             # a new cycle begins

@@ -550,9 +550,12 @@ class Axis:
         self._ppm_pending = raw_position if self.active_mode == PROFILE_POSITION.number else None
 
     # --------------------------------------------------------- watchdog
-    def watch(self, now: float, cycle: int, period: float, pdo_timeout: float, pdo_cycles: int) -> None:
+    def watch(self, now: float, cycle: int, period: float, pdo_timeout: float, pdo_cycles: int,
+              reception: Optional[Tuple[float, float]] = None) -> None:
         """Heartbeat consumer, NMT state, boot-up and TxPDO watchdog for an
-        enabled axis (monotonic time)."""
+        enabled axis (monotonic time). ``reception``: the receive clock's
+        progress (bus.ReceiveClock), when the latest frame read was read and
+        when it arrived."""
         if not self.ready or not self.attached:
             return
         if self.rebooted:
@@ -569,7 +572,14 @@ class Axis:
             return
         if self.error:
             return
-        if self.heartbeat_ms > 0 and now - self.last_heartbeat > 1.5 * self.heartbeat_ms / 1000.0 + 2 * period:
+        limit = 1.5 * self.heartbeat_ms / 1000.0 + 2 * period
+        if self.heartbeat_ms > 0 and now - self.last_heartbeat > limit and (
+                # Lost only once the driver has read a frame that arrived
+                # after the heartbeat was due (frames are read in the order
+                # they came), or has read nothing at all for as long: a
+                # heartbeat still waiting unread behind a stalled notifier
+                # is not a silent drive.
+                reception is None or reception[1] - self.last_heartbeat > limit or now - reception[0] > limit):
             self.nmt_state = "LOST"
             self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
                            % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms), sight_lost=True)

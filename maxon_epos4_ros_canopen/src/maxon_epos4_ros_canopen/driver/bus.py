@@ -2,12 +2,13 @@
 python-can bus from ``bus/device`` and ``bus/bitrate`` (can_device.py), the
 SYNC producer with ros_canopen's overflow counter (canopen's SyncProducer
 sends no counter), kernel-timed on SocketCAN, and the master's heartbeat
-producer (``heartbeat/rate``, ``heartbeat/msg``)."""
+producer (``heartbeat/rate``, ``heartbeat/msg``), and the clock that says
+when a received frame reached this host."""
 from __future__ import annotations
 
 import logging
 import time
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import can
 
@@ -15,6 +16,9 @@ from ..can_device import open_device
 from ..config import BusConfig, HeartbeatConfig
 
 SYNC_COB_ID = 0x080
+# A receive timestamp further than this from the host's wall clock is taken
+# for an adapter's own clock: how long the frame waited is then unknown.
+MAX_RECEIVE_LAG = 5.0
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
 
@@ -151,3 +155,33 @@ class HeartbeatProducer:
         if self._task is not None:
             self._task.stop()
             self._task = None
+
+
+class ReceiveClock(can.Listener):
+    """When frames reached this host, on the monotonic clock, and how far
+    the CAN notifier has read.
+
+    A loaded host can leave the notifier thread unscheduled for a while
+    with frames waiting in the socket. A watchdog that judged a drive by
+    when its frames were read would then take the driver's own stall for
+    the drive's silence. The kernel stamps each frame as it arrives
+    (python-can's ``timestamp``, wall clock on SocketCAN and the virtual
+    bus); its distance from the wall clock when the frame is read is how
+    long it waited, which moves the arrival onto the monotonic clock.
+
+    ``progress`` is replaced whole by the notifier thread, one immutable
+    tuple: (monotonic time the latest frame was read, when it arrived)."""
+
+    def __init__(self) -> None:
+        now = time.monotonic()
+        self.progress: Tuple[float, float] = (now, now)
+
+    @staticmethod
+    def arrival(timestamp: float, read_at: float) -> float:
+        """The monotonic time a frame read at ``read_at`` reached the host."""
+        lag = time.time() - timestamp
+        return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
+
+    def on_message_received(self, msg: can.Message) -> None:
+        now = time.monotonic()
+        self.progress = (now, self.arrival(msg.timestamp, now))

@@ -47,7 +47,7 @@ from ..result import Result, fail, ok
 from ..units import object_variable_name
 from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
                    holding_controlword, initial_snapshot)
-from .bus import HeartbeatProducer, SyncProducer, is_socketcan, open_bus
+from .bus import HeartbeatProducer, ReceiveClock, SyncProducer, is_socketcan, open_bus
 from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
                     TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, VELOCITY_ACTUAL, mode_of, supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
@@ -333,6 +333,7 @@ class Driver:
         self._send_failures = 0
         self._out_frames: Dict[int, can.Message] = {}  # COB-ID -> the message _send reuses (cycle thread)
         self._foreign_frames = [0]  # written by the notifier thread only
+        self._receive_clock = ReceiveClock()  # written by the notifier thread only
 
     # ============================================================ lookup
     @property
@@ -519,6 +520,8 @@ class Driver:
         # error (an interface going down) unless a listener handles it; this
         # one does, so reception resumes when the interface is up again.
         network.notifier.add_listener(_ReceiveErrors(network.notifier))
+        self._receive_clock = clock = ReceiveClock()
+        network.notifier.add_listener(clock)
         self.network = network
         self._receiver = receiver = TpdoReceiver({m.cob_id: m.length for node in self._nodes.values()
                                                   for m in enabled_maps(node.plan.tx)})
@@ -542,11 +545,12 @@ class Driver:
             sdo[name] = client
             boot = self._boot.setdefault(nid, threading.Event())
 
-            def on_heartbeat(can_id: int, data: Any, _ts: float, boot: threading.Event = boot) -> None:
+            def on_heartbeat(can_id: int, data: Any, timestamp: float, boot: threading.Event = boot) -> None:
                 payload = bytes(data)
                 if payload == b"\x00":
                     boot.set()
-                inbox.put(_Heartbeat(can_id - 0x700, payload, time.monotonic()))
+                # stamped with when it arrived, not when this thread got to it
+                inbox.put(_Heartbeat(can_id - 0x700, payload, clock.arrival(timestamp, time.monotonic())))
 
             def on_emcy(can_id: int, data: Any, _ts: float) -> None:
                 inbox.put(_Emcy(can_id - 0x80, bytes(data), time.monotonic()))
@@ -717,12 +721,13 @@ class Driver:
                 log.exception("driver inbox failed")
         receiver = self._receiver
         period, pdo_timeout = self._period, self._pdo_timeout
+        reception = self._receive_clock.progress
         snaps = {}
         for axis in self._axes:
             try:
                 if axis.attached:
                     axis.read(receiver, now, cycle_no)
-                    axis.watch(now, cycle_no, period, pdo_timeout, _PDO_MISSING_CYCLES)
+                    axis.watch(now, cycle_no, period, pdo_timeout, _PDO_MISSING_CYCLES, reception)
             except Exception:
                 log.exception("%s: reading failed", axis.name)
             snaps[axis.name] = axis.snapshot()
