@@ -572,14 +572,7 @@ class Axis:
             return
         if self.error:
             return
-        limit = 1.5 * self.heartbeat_ms / 1000.0 + 2 * period
-        if self.heartbeat_ms > 0 and now - self.last_heartbeat > limit and (
-                # Lost only once the driver has read a frame that arrived
-                # after the heartbeat was due (frames are read in the order
-                # they came), or has read nothing at all for as long: a
-                # heartbeat still waiting unread behind a stalled notifier
-                # is not a silent drive.
-                reception is None or reception[1] - self.last_heartbeat > limit or now - reception[0] > limit):
+        if self.heartbeat_ms > 0 and self._heartbeat_missing(now, period, reception):
             self.nmt_state = "LOST"
             self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
                            % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms), sight_lost=True)
@@ -591,6 +584,17 @@ class Axis:
             self.nmt_state = "LOST"
             self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
                 cycle - self.status_seen_cycle, (now - self.status_seen) * 1000), sight_lost=True)
+
+    def _heartbeat_missing(self, now: float, period: float, reception: Optional[Tuple[float, float]]) -> bool:
+        """Nothing from the drive for 1.5 x 0x1017 + 2 cycles. Missing only
+        once the driver has read a frame that arrived after the heartbeat
+        was due (frames are read in the order they came), or has read
+        nothing at all for as long: a heartbeat still waiting unread behind
+        a stalled notifier is not a silent drive."""
+        limit = 1.5 * self.heartbeat_ms / 1000.0 + 2 * period
+        if now - self.last_heartbeat <= limit:
+            return False
+        return reception is None or reception[1] - self.last_heartbeat > limit or now - reception[0] > limit
 
     def _count(self, what: str, n: int = 1) -> None:
         self.counters[what] += n
