@@ -37,6 +37,16 @@ for t in "${tests[@]}"; do
   if [ $rc = 0 ]; then echo "ok    $pkg/$file (${secs}s)"; else
     echo "FAIL  $pkg/$file (exit $rc, ${secs}s): last lines of its log:"
     tail -25 "$results/logs/$pkg.$file.log" | sed 's/^/      /'
+    # The figure lines a test prints as it goes ("fault_matrix: ...") say
+    # what happened before the failure, and CI keeps only this output.
+    # rostest keeps a test's stdout in its JUnit file.
+    figures=$(grep -h -o -E '(fault_matrix|driver_fuzz|mani_fuzz|mani_garbage|sim_fuzz): [^<]*' \
+                -r "$results/xml/$pkg.$file" 2>/dev/null | tail -40 | cut -c1-400 \
+              | sed -e "s/&apos;/'/g" -e 's/&quot;/"/g' -e 's/&lt;/</g' -e 's/&gt;/>/g' -e 's/&amp;/\&/g')
+    if [ -n "$figures" ]; then
+      echo "      --- the figure lines it printed:"
+      echo "$figures" | sed 's/^/      /'
+    fi
   fi
 done
 exit 0

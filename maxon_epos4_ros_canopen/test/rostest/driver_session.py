@@ -61,7 +61,12 @@ class SdoProbe:
 
     def __init__(self, device: str) -> None:
         self.network = canopen.Network()
-        self.network.connect(interface="socketcan", channel=device)
+        # Only SDO answers (0x580-0x5FF) reach this process: the kernel
+        # drops the rest, so the probe does not wake up for every SYNC and
+        # PDO of the drives it watches (in user-mode Linux every wake-up of
+        # the tests costs the driver and the simulator CPU).
+        self.network.connect(interface="socketcan", channel=device,
+                             can_filters=[{"can_id": 0x580, "can_mask": 0x780, "extended": False}])
         self._nodes: Dict[int, canopen.RemoteNode] = {}
 
     def _node(self, node_id: int) -> canopen.RemoteNode:
@@ -118,6 +123,21 @@ class DiagnosticsWatch:
         with self._lock:
             entries = self._history.get(joint) or [(0.0, {})]
             return dict(entries[-1][1])
+
+    def errors_since(self, since: float) -> Dict[str, List[Tuple[float, str]]]:
+        """Each joint's distinct errors shown after `since` (time.monotonic()),
+        with the time each first arrived."""
+        found: Dict[str, List[Tuple[float, str]]] = {}
+        with self._lock:
+            for joint, entries in self._history.items():
+                seen: List[Tuple[float, str]] = []
+                for stamp, values in entries:
+                    error = values.get("error")
+                    if stamp >= since and error and all(error != e for _, e in seen):
+                        seen.append((stamp, error))
+                if seen:
+                    found[joint] = seen
+        return found
 
     def first_since(self, joint: str, since: float, condition: Callable[[Dict[str, str]], bool],
                     timeout: float = WAIT) -> Tuple[float, Dict[str, str]]:
