@@ -43,7 +43,7 @@ from collections import deque
 from typing import Dict, List, Optional, Tuple
 
 __all__ = [
-    "State", "OperationMode", "MODE_SHORT_NAMES", "mode_name", "state_from_statusword",
+    "State", "OperationMode", "MODE_SHORT_NAMES", "mode_name", "state_from_statusword", "state_or_none",
     "next_controlword", "apply_controlword", "statusword_state_bits",
     "COMMANDS",
 ]
@@ -175,6 +175,15 @@ def state_from_statusword(sw: int) -> State:
         if sw & mask == value:
             return state
     raise ValueError("statusword 0x%04X encodes no CiA 402 state" % (sw & 0xFFFF))
+
+
+def state_or_none(sw: int) -> Optional[State]:
+    """The power state of a statusword, or None when it encodes none (a
+    frame that lies, a drive mid-reset): for callers that must go on."""
+    try:
+        return state_from_statusword(sw)
+    except ValueError:
+        return None
 
 
 def statusword_state_bits(state: State) -> int:

@@ -32,6 +32,12 @@ def test_undefined_patterns_raise(sw):
         state_from_statusword(sw)
 
 
+@pytest.mark.parametrize("sw", [0x0001, 0x0003, 0x0061, 0x0067])
+def test_state_or_none_gives_none_for_undefined_patterns(sw):
+    assert cia402.state_or_none(sw) is None
+    assert cia402.state_or_none(0x0637) == State.OPERATION_ENABLED
+
+
 def test_state_bits_round_trip():
     for state in State:
         bits = cia402.statusword_state_bits(state)

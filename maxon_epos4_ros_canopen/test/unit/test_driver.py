@@ -223,6 +223,9 @@ def test_commands_are_saturated_to_the_joint_limits(rig):
     assert until(lambda: rig.read(0x60FF) == 50)  # 0.5 * 100, never 200
     assert d.set_command(J1, "velocity", -0.2).success
     assert until(lambda: rig.read(0x60FF) == -20)
+    # diagnostics count the clipped commands apart from ignored frames
+    assert until(lambda: d.status()[0]["commands_limited"] == "clipped_commands 3")
+    assert d.status()[0]["frames_ignored"] == "none"
 
 
 def test_halt_is_a_quick_stop_by_default_and_recover_does_not_jump(rig):

@@ -56,11 +56,7 @@ def holding_controlword(statusword: int) -> int:
     last controlword (0x6040): a drive its own fault reaction or consumer
     brought to Quick Stop Active still holds "enable operation" there, and
     sending that again would re-enable it (transition 16)."""
-    try:
-        state = cia402.state_from_statusword(statusword)
-    except ValueError:
-        return cia402.CW_DISABLE_VOLTAGE
-    return _HOLD.get(state, cia402.CW_DISABLE_VOLTAGE)
+    return _HOLD.get(cia402.state_or_none(statusword), cia402.CW_DISABLE_VOLTAGE)
 
 
 _REBOOTED = "node rebooted"

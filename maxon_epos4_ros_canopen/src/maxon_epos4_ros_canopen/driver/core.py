@@ -96,11 +96,14 @@ class _Timeout(Exception):
     """A drive did not show what init waited for (the text: what it shows)."""
 
 
-def _state_of(statusword: int) -> Optional[State]:
-    try:
-        return cia402.state_from_statusword(statusword)
-    except ValueError:
-        return None
+# Diagnostics keys of the axis counters: frames dropped as malformed or
+# undefined, and commands refused or saturated.
+FRAME_COUNTERS = ("bad_tpdo", "undefined_statusword", "undefined_nmt_state", "bad_heartbeat", "bad_emcy")
+COMMAND_COUNTERS = ("refused_commands", "clipped_commands")
+
+
+def _listed(counters: Mapping[str, int], names: Sequence[str]) -> str:
+    return ", ".join("%s %d" % (n, counters[n]) for n in names if counters.get(n)) or "none"
 
 
 # ----------------------------------------------------------------- messages
@@ -1120,7 +1123,7 @@ class Driver:
                 self._download(name, key.index, key.subindex, find_variable(node.od, key).encode_raw(value))
                 out[key] = value
             for _ in range(_ENABLE_STEPS):
-                state = _state_of(statusword)
+                state = cia402.state_or_none(statusword)
                 if state == State.OPERATION_ENABLED:
                     break
                 if state == State.FAULT:
@@ -1134,7 +1137,7 @@ class Driver:
                     self._download(name, CONTROLWORD.index, 0, cw.to_bytes(2, "little"))
                 step = "waiting to leave %s%s" % (state.value if state else "0x%04X" % statusword,
                                                   " after " + step[8:] if commands else "")
-                statusword = self._await(name, STATUSWORD, lambda v, s=state: _state_of(v) != s,
+                statusword = self._await(name, STATUSWORD, lambda v, s=state: cia402.state_or_none(v) != s,
                                          "statusword 0x6041 = 0x%04X")
             else:
                 raise _InitError("%s (node %d): not operation enabled after %d steps (0x6041 = 0x%04X)"
@@ -1177,7 +1180,7 @@ class Driver:
         nid = self._nodes[name].cfg.node_id
         step = "reading the statusword 0x6041"
         try:
-            state = _state_of(int(self._upload(name, STATUSWORD)))
+            state = cia402.state_or_none(int(self._upload(name, STATUSWORD)))
             if state == State.OPERATION_ENABLED:
                 step = "writing controlword 0x6040 = 0x%04X (quick stop)" % cia402.CW_QUICK_STOP
                 self._download(name, CONTROLWORD.index, 0, cia402.CW_QUICK_STOP.to_bytes(2, "little"))
@@ -1646,7 +1649,6 @@ class Driver:
         snap = self._snapshot
         out = []
         for a in snap.axes.values():
-            counters = {k: v for k, v in a.counters.items() if v}
             out.append({
                 "name": a.name, "node_id": a.node_id, "nmt_state": a.nmt_state,
                 "state": a.state.value if a.state else "unknown",
@@ -1656,7 +1658,9 @@ class Driver:
                 "error": a.error or "", "halted": a.halted, "initialized": self.initialized,
                 "pdo_mapping": a.plan.source, "limits": a.limits.describe(),
                 "last_refused_command": a.last_refusal,
-                "frames_ignored": ", ".join("%s %d" % kv for kv in sorted(counters.items())) or "none",
+                "frames_ignored": _listed(a.counters, FRAME_COUNTERS),
+                "commands_limited": _listed(a.counters, COMMAND_COUNTERS),
+                "emcy_not_logged": a.counters.get("emcy_not_logged", 0),
                 "foreign_rpdo_frames": snap.foreign_frames,
             })
         return out
