@@ -657,3 +657,35 @@ def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(rig):
     rig.sim.inject_fault(1, "heartbeat_stop")
     assert until(lambda: d.joints[J1].error is not None, 2.0)
     assert "heartbeat lost" in d.joints[J1].error
+
+
+def test_sdo_transfers_tell_no_answer_from_another_clients_answer_by_the_timeout_itself(rig):
+    """canopen words both as SdoCommunicationError. A missing answer (raised
+    from the response queue's timeout) is tried 3 times with longer waits;
+    any other disturbance, whatever its text, is another client's answer on
+    the channel and is tried again up to 7 more times."""
+    from canopen.sdo.exceptions import SdoCommunicationError
+
+    d = rig.start()
+    assert d.init().success
+    d.sdo_timeout = 0.1
+    rig.sim.inject_fault(1, "silent")  # the drive answers nothing
+    timeouts = []
+
+    def read_device_type(client):
+        timeouts.append(client.RESPONSE_TIMEOUT)
+        return client.upload(0x1000, 0)
+    with pytest.raises(SdoCommunicationError, match="No SDO response"):
+        d._sdo_transfer(J1, read_device_type)
+    assert timeouts == pytest.approx([0.1, 0.2, 0.3])
+    rig.sim.inject_fault(1, "clear")
+
+    disturbed = []
+
+    def busy_channel(client):
+        disturbed.append(client.RESPONSE_TIMEOUT)
+        if len(disturbed) < 8:
+            raise SdoCommunicationError("an answer worded as no canopen release words it yet")
+        return b"\x01"
+    assert d._sdo_transfer(J1, busy_channel) == b"\x01"
+    assert disturbed == [d.sdo_timeout] * 8

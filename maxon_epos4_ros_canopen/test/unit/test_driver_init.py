@@ -150,6 +150,8 @@ def test_init_of_127_drives_in_one_process(rig):
         a = d.joints[name]
         assert a.ready and a.held_state == State.OPERATION_ENABLED and not a.error, name
         assert rig.state(nid) == State.OPERATION_ENABLED, name
+        # one DCF for all: each drive still got its own $NODEID COB-IDs
+        assert rig.read(0x1800, 1, node=nid) & 0x7FF == 0x180 + nid, name
     plan = d.joints["j127"].plan
     assert until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 2)
     for nid, _, name in nodes:

@@ -169,3 +169,25 @@ def test_event_tpdo_respects_inhibit_time(rig):
     frames = [m for m in rig.collect(1.0) if m.arbitration_id == 0x381]
     # at most one per 50 ms, not one per 2 ms simulation step
     assert 2 <= len(frames) <= 21
+
+
+def test_nodes_of_one_dcf_keep_their_own_node_id_values_through_resets():
+    """Three nodes read from one file share its dictionary, yet each answers
+    with its own $NODEID values (TxPDO COB-IDs, EMCY COB-ID) at power-on and
+    after a reset, and a value written to one does not reach the others."""
+    r = Rig([NodeConfig(n, NODE1) for n in (1, 2, 3)])
+    try:
+        nodes = {n: r.remote(n) for n in (1, 2, 3)}
+
+        def cob_ids():
+            return {n: (node.sdo[0x1800][1].raw & 0x7FF, node.sdo[0x1014].raw & 0x7FF)
+                    for n, node in nodes.items()}
+        expected = {n: (0x180 + n, 0x080 + n) for n in nodes}
+        assert cob_ids() == expected
+        nodes[2].sdo[0x6081].raw = 777
+        assert [nodes[n].sdo[0x6081].raw for n in (1, 2, 3)] == [1000, 777, 1000]
+        r.send(0x000, bytes([0x81, 0]))  # reset node, all of them
+        assert r.wait(lambda: nodes[2].sdo[0x6081].raw == 1000)
+        assert cob_ids() == expected
+    finally:
+        r.close()

@@ -77,11 +77,12 @@ class VirtualEpos4:
 
     def __init__(self, node_id: int, od: canopen.ObjectDictionary, transport: Transport,
                  now: float, hard_stop: Optional[Tuple[float, float]] = None,
-                 sdo_timeout: float = 1.0, on_routes_changed: Optional[Callable[[], None]] = None):
+                 sdo_timeout: float = 1.0, on_routes_changed: Optional[Callable[[], None]] = None,
+                 initial: Optional[Dict[Tuple[int, int], Any]] = None):
         self.on_routes_changed = on_routes_changed
         self.node_id = node_id
         self.transport = transport
-        self.store = ObjectStore(od)
+        self.store = ObjectStore(od, initial)
         self.store.write_hook = self._check_write
         self.store.after_write = self._after_write
         self.pdos = PdoSet()

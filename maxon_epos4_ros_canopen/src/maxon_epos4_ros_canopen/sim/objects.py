@@ -8,7 +8,7 @@ small store.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Dict, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, Optional, Tuple
 
 import canopen
 from canopen.objectdictionary import ODVariable
@@ -53,26 +53,41 @@ def _initial_value(var: ODVariable) -> Any:
     return "" if var.data_type == 0x9 else b""
 
 
+def _variables(od: canopen.ObjectDictionary) -> Iterator[Tuple[Key, ODVariable, bool]]:
+    """(key, variable, is a plain VAR without sub-indices) of every object."""
+    for index in od.indices:
+        obj = od[index]
+        if isinstance(obj, ODVariable):
+            yield (index, 0), obj, True
+        else:
+            for sub, var in obj.subindices.items():
+                yield (index, sub), var, False
+
+
+def initial_values(od: canopen.ObjectDictionary) -> Dict[Key, Any]:
+    """Every object's power-on value (ParameterValue, else DefaultValue),
+    as the file gives it for the node-ID ``od`` was read for."""
+    return {key: _initial_value(var) for key, var, _ in _variables(od)}
+
+
 class ObjectStore:
     """Live values of an object dictionary.
 
+    ``od`` gives the objects' types and limits; it may be shared by the
+    nodes of one file, and ``initial`` then holds this node's power-on
+    values (those with $NODEID differ between nodes).
     ``write_hook(key, value)`` runs before an SDO/PDO write is stored and may
     raise SdoAbort; ``get``/``set`` are the drive's own unchecked access.
     """
 
-    def __init__(self, od: canopen.ObjectDictionary):
+    def __init__(self, od: canopen.ObjectDictionary, initial: Optional[Dict[Key, Any]] = None):
         self.od = od
         self.vars: Dict[Key, ODVariable] = {}
         self.plain: Dict[int, bool] = {}  # index -> is a plain VAR (no sub-indices)
-        for index in od.indices:
-            obj = od[index]
-            if isinstance(obj, ODVariable):
-                self.vars[(index, 0)] = obj
-                self.plain[index] = True
-            else:
-                self.plain[index] = False
-                for sub, var in obj.subindices.items():
-                    self.vars[(index, sub)] = var
+        for key, var, plain in _variables(od):
+            self.vars[key] = var
+            self.plain[key[0]] = plain
+        self.initial = initial if initial is not None else initial_values(od)
         self.values: Dict[Key, Any] = {}
         self.write_hook: Optional[Callable[[Key, Any], None]] = None
         self.after_write: Optional[Callable[[Key, Any], None]] = None
@@ -80,9 +95,9 @@ class ObjectStore:
 
     def power_on(self, lo: int = 0x0000, hi: int = 0xFFFF) -> None:
         """Power-on values (ParameterValue, else DefaultValue) for lo..hi."""
-        for key, var in self.vars.items():
+        for key in self.vars:
             if lo <= key[0] <= hi:
-                self.values[key] = _initial_value(var)
+                self.values[key] = self.initial[key]
 
     def __contains__(self, key: Key) -> bool:
         return key in self.values

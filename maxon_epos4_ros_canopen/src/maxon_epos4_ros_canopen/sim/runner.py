@@ -8,6 +8,7 @@ sampled.  Calls from other threads (fault injection, inspection) go through
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -15,10 +16,11 @@ from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 
 import can
+import canopen
 
 from ..can_device import open_device
 from .drive import VirtualEpos4
-from .objects import load_od
+from .objects import initial_values, load_od
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +80,16 @@ class Simulator:
         self._changed: Set[int] = set()
         now = clock()
         self.nodes: Dict[int, VirtualEpos4] = {}
+        # The nodes of one file share its object dictionary (types, limits);
+        # each keeps its own power-on values, which $NODEID makes differ.
+        shared_ods: Dict[str, canopen.ObjectDictionary] = {}
         for cfg in nodes:
-            od = load_od(cfg.dcf, cfg.node_id)
+            own = load_od(cfg.dcf, cfg.node_id)
+            od = shared_ods.setdefault(os.path.realpath(cfg.dcf), own)
             self.nodes[cfg.node_id] = VirtualEpos4(
                 cfg.node_id, od, self._transmit, now, hard_stop=cfg.hard_stop,
-                on_routes_changed=lambda node_id=cfg.node_id: self._mark_routes(node_id))
+                on_routes_changed=lambda node_id=cfg.node_id: self._mark_routes(node_id),
+                initial=None if od is own else initial_values(own))
         self._order = {node_id: i for i, node_id in enumerate(self.nodes)}
         self._routes_dirty = True
 
