@@ -97,14 +97,15 @@ class _Timeout(Exception):
     """A drive did not show what init waited for (the text: what it shows)."""
 
 
-# Diagnostics keys of the axis counters: frames dropped as malformed or
-# undefined, and commands refused or saturated.
-FRAME_COUNTERS = ("bad_tpdo", "undefined_statusword", "undefined_nmt_state", "bad_heartbeat", "bad_emcy")
-COMMAND_COUNTERS = ("refused_commands", "clipped_commands")
+# Diagnostics keys of the axis counters: commands refused or saturated,
+# EMCY lines not logged, and every other counter is a frame dropped as
+# malformed or undefined (so a counter added later is never left out).
+COMMAND_COUNTERS = frozenset({"refused_commands", "clipped_commands"})
+EMCY_NOT_LOGGED = "emcy_not_logged"
 
 
-def _listed(counters: Mapping[str, int], names: Sequence[str]) -> str:
-    return ", ".join("%s %d" % (n, counters[n]) for n in names if counters.get(n)) or "none"
+def _listed(counters: Mapping[str, int], wanted: Callable[[str], bool]) -> str:
+    return ", ".join("%s %d" % (n, v) for n, v in sorted(counters.items()) if v and wanted(n)) or "none"
 
 
 # ----------------------------------------------------------------- messages
@@ -1668,9 +1669,9 @@ class Driver:
                 "error": a.error or "", "halted": a.halted, "initialized": self.initialized,
                 "pdo_mapping": a.plan.source, "limits": a.limits.describe(),
                 "last_refused_command": a.last_refusal,
-                "frames_ignored": _listed(a.counters, FRAME_COUNTERS),
-                "commands_limited": _listed(a.counters, COMMAND_COUNTERS),
-                "emcy_not_logged": a.counters.get("emcy_not_logged", 0),
+                "frames_ignored": _listed(a.counters, lambda n: n not in COMMAND_COUNTERS and n != EMCY_NOT_LOGGED),
+                "commands_limited": _listed(a.counters, COMMAND_COUNTERS.__contains__),
+                "emcy_not_logged": a.counters.get(EMCY_NOT_LOGGED, 0),
                 "foreign_rpdo_frames": snap.foreign_frames,
             })
         return out
