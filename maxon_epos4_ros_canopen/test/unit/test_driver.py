@@ -659,6 +659,43 @@ def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(rig):
     assert "heartbeat lost" in d.joints[J1].error
 
 
+class _ShortAnswerFirst(can.Listener):
+    """Stands in for a drive's SDO server: answers the first request on
+    0x600 + node_id with a forged one-byte frame on the answer's COB-ID,
+    every later one with the real expedited upload of ``value``."""
+
+    def __init__(self, bus, node_id, value):
+        self.bus, self.node_id, self.value = bus, node_id, value
+        self.requests = 0
+
+    def on_message_received(self, msg):
+        if msg.arbitration_id != 0x600 + self.node_id or msg.data[0] != 0x40:
+            return
+        self.requests += 1
+        data = b"\x43" if self.requests == 1 else b"\x43" + bytes(msg.data[1:4]) + self.value.to_bytes(4, "little")
+        self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
+
+
+def test_a_forged_short_sdo_answer_is_tried_again_like_another_clients_answer(rig):
+    """A frame on the SDO answer's COB-ID shorter than 8 bytes (a forged or
+    corrupt one) makes canopen's client fail to unpack it. The driver takes
+    it as an answer that was not its own and asks again; the service answers
+    with the drive's value."""
+    d = rig.start()
+    assert d.init().success
+    rig.sim.inject_fault(1, "silent")  # only the stand-in below answers
+    bus = rig._bus()
+    server = _ShortAnswerFirst(bus, 1, 0x00020192)
+    notifier = can.Notifier(bus, [server])
+    try:
+        r = d.get_object(J1, "1000")
+    finally:
+        notifier.stop()
+        rig.sim.inject_fault(1, "clear")
+    assert server.requests == 2
+    assert r.success and int(r.value) == 0x00020192, r.message
+
+
 def test_sdo_transfers_tell_no_answer_from_another_clients_answer_by_the_timeout_itself(rig):
     """canopen words both as SdoCommunicationError. A missing answer (raised
     from the response queue's timeout) is tried 3 times with longer waits;

@@ -24,6 +24,7 @@ import logging
 import os
 import queue
 import random
+import struct
 import threading
 import time
 from collections import OrderedDict
@@ -867,15 +868,19 @@ class Driver:
                     client.RESPONSE_TIMEOUT = self.sdo_timeout * (late + 1)
                     try:
                         return transfer(client)
-                    except SdoCommunicationError as e:
+                    except (SdoCommunicationError, struct.error) as e:
                         # canopen raises "no answer" from its response
                         # queue's timeout; every other communication error
                         # is an answer that was not this request's (another
                         # client's, "Node returned a value for ... instead",
-                        # "Unexpected response"), whatever its wording
+                        # "Unexpected response"), whatever its wording, and
+                        # so is an answer shorter than 8 bytes, which canopen
+                        # fails to unpack (a forged or corrupt frame)
                         foreign = not isinstance(e.__context__, queue.Empty)
                         late += 0 if foreign else 1
                         if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
+                            if isinstance(e, struct.error):
+                                raise SdoCommunicationError("malformed SDO answer (%s)" % e) from e
                             raise
                         log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
                         if foreign:
