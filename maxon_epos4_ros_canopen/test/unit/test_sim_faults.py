@@ -148,3 +148,34 @@ def test_timed_silence_ends_by_itself(rig):
         rig.send(0x602, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
         return rig.expect(lambda m: m.arbitration_id == 0x582, timeout=0.1) is not None
     assert rig.wait(answers, timeout=5.0)
+
+
+@pytest.mark.parametrize("step", [0.001, 0.01, 0.02, 0.05])
+def test_a_fault_reaction_ends_at_standstill_however_coarse_the_steps(rig, step):
+    """The power stage goes off (Fault) only with the motor at rest, also
+    when the simulating loop is starved and advances in coarse steps: the
+    position then stays where the ramp ended, as a real drive's does."""
+    node = rig.remote(1)
+    from test_sim_support import spin_up
+    spin_up(node, rig, 500)
+    drive = rig.sim.nodes[1]
+
+    def fault_in_steps_of(dt):
+        # in the loop thread: nothing else advances the drive meanwhile
+        t = drive.t
+        drive.raise_fault(0x8611, t)
+        for _ in range(int(2.0 / dt)):
+            t += dt
+            drive.tick(t)
+            if drive.statusword() & 0x6F == 0x08:
+                break
+        stopped_at = drive.position
+        for _ in range(int(5.0 / dt)):  # five more seconds in Fault
+            t += dt
+            drive.tick(t)
+        return drive.statusword(), stopped_at, drive.position, drive.motor.velocity
+    statusword, stopped_at, position, velocity = rig.sim.call(lambda: fault_in_steps_of(step))
+    assert statusword & 0x6F == 0x08  # fault
+    assert velocity == 0.0
+    assert abs(position - stopped_at) < 1.0, "the rotor moved %.1f inc after the power stage went off" % (
+        position - stopped_at)

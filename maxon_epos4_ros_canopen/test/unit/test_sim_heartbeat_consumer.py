@@ -205,3 +205,38 @@ def test_a_drive_cut_off_the_bus_stops_on_its_own(rig):
     assert rig.wait(lambda: node.sdo[0x6041].raw & 0x6F == 0x07)
     assert not [m for m in rig.collect(0.2) if _is_emcy(m)]
     master.stop()
+
+
+def test_a_sync_that_finds_the_master_lost_applies_no_rxpdo_received_before(rig):
+    """The drive advances at each SYNC before it applies the synchronous
+    RxPDOs received since the last one. When that advance finds the master
+    lost (quick stop, 0x1029: pre-operational), the buffered RxPDO, the
+    master's routine enable operation sent before it knew, must not be
+    applied: a pre-operational drive takes no PDOs, and enable operation
+    would take Quick Stop Active back to Operation Enabled (transition 16,
+    0x605A = 6) at the old target velocity."""
+    node = rig.remote(1)
+    _watch_master(node)  # 100 ms
+    master = Master(rig)
+    spin_up(node, rig, 1000)
+    rig.send(0x000, bytes([0x01, 1]))  # operational: RxPDOs count
+    assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
+    master.stop()
+
+    def cycles_without_the_masters_heartbeat():
+        # in the loop thread, so nothing else runs in between: 10 ms cycles
+        # of the master (RxPDO 1 with enable operation and the same target,
+        # then SYNC) while its heartbeats are missing; one of the SYNCs
+        # finds the consumer time run out
+        drive = rig.sim.nodes[1]
+        rpdo = next(p for p in drive.pdos.rpdos if p.valid and (0x6040, 0) in p.keys)
+        values = dict(drive.store.values)
+        values[(0x6040, 0)] = 0x000F
+        data = rpdo.pack(values)
+        for _ in range(50):
+            drive.on_frame(rpdo.cob_id, data, False, drive.t)
+            drive.on_sync(drive.t + 0.01)
+    rig.sim.call(cycles_without_the_masters_heartbeat)
+    assert rig.sim.nodes[1].nmt_state == 0x7F  # pre-operational (0x1029 sub 1 = 0)
+    assert rig.wait(lambda: node.sdo[0x606C].raw == 0)
+    assert node.sdo[0x6041].raw & 0x6F == 0x07  # still quick stop active

@@ -143,6 +143,8 @@ class VirtualEpos4:
             if entering:
                 for tpdo in self.pdos.tpdos:
                     tpdo.last_data = None  # event PDOs send their first value
+                for rpdo in self.pdos.rpdos:
+                    rpdo.sampled = None  # one buffered before the drive left OPERATIONAL is stale
         elif command == 0x02:
             self.nmt_state = NMT_STOPPED
         elif command == 0x80:
@@ -266,6 +268,13 @@ class VirtualEpos4:
         if self.is_silent(now) or self.nmt_state != NMT_OPERATIONAL:
             return
         self.tick(now)
+        if self.nmt_state != NMT_OPERATIONAL:
+            # This advance found the master lost (0x1029 left OPERATIONAL):
+            # a pre-operational drive applies none of the RxPDOs buffered for
+            # this SYNC, and no TxPDO goes out.
+            for rpdo in self.pdos.rpdos:
+                rpdo.sampled = None
+            return
         for tpdo in self.pdos.tpdos:  # sampled at SYNC reception
             if not tpdo.valid:
                 continue
@@ -623,33 +632,41 @@ class VirtualEpos4:
         m = self.motor
         k = m.inc_per_s_per_rpm
         stopping = state == State.OPERATION_ENABLED and self.stopping is not None
+        ramp_option = None  # the option code of a stop ramp in progress
         if state == State.OPERATION_ENABLED and not stopping:
             mode, pref, vref, iref = self._mode_step(dt, now)
         elif stopping or state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
             if stopping:
-                option = 1  # slow down with the profile deceleration
+                ramp_option = 1  # slow down with the profile deceleration
             else:
-                option = self.store.get(0x605A if state == State.QUICK_STOP_ACTIVE else 0x605E, 0, 2)
-            decel = self.store.get(0x6084 if option in (1, 5) else 0x6085, 0, 10000)
-            if option == 0:
+                ramp_option = self.store.get(0x605A if state == State.QUICK_STOP_ACTIVE else 0x605E, 0, 2)
+            decel = self.store.get(0x6084 if ramp_option in (1, 5) else 0x6085, 0, 10000)
+            if ramp_option == 0:
                 self.v_dem = 0.0
                 mode, pref, vref, iref = mm.OFF, 0.0, 0.0, 0.0
             else:
+                v_before = self.v_dem
                 self.v_dem = _ramp(self.v_dem, 0.0, decel, decel, dt)
-                self.p_dem += self.v_dem * k * dt
+                # the distance the ramp covers in this step (trapezoid): a
+                # coarse step of a starved loop must not leave the demand
+                # short of the rotor, which the position loop would then
+                # pull back
+                self.p_dem += 0.5 * (v_before + self.v_dem) * k * dt
                 mode, pref, vref, iref = mm.POSITION, self.p_dem - self.offset, self.v_dem, 0.0
-            if self.v_dem == 0.0 and abs(m.velocity) < 1.0:
-                if stopping:
-                    self.state, self.stopping = self.stopping, None  # transition 8 / 5 completes
-                elif state == State.FAULT_REACTION_ACTIVE:
-                    self.state = State.FAULT  # transition 14
-                elif option in (0, 1, 2):
-                    self.state = State.SWITCH_ON_DISABLED  # transition 12 (automatic)
-                else:
-                    self.target_reached = True
         else:
             mode, pref, vref, iref = mm.OFF, 0.0, 0.0, 0.0
         m.step(dt, mode, pref, vref, iref)
+        # The ramp ends, and a power stage goes off, only with the rotor at
+        # rest after this step.
+        if ramp_option is not None and self.v_dem == 0.0 and abs(m.velocity) < mm.STANDSTILL_RPM:
+            if stopping:
+                self.state, self.stopping = self.stopping, None  # transition 8 / 5 completes
+            elif state == State.FAULT_REACTION_ACTIVE:
+                self.state = State.FAULT  # transition 14
+            elif ramp_option in (0, 1, 2):
+                self.state = State.SWITCH_ON_DISABLED  # transition 12 (automatic)
+            else:
+                self.target_reached = True
         if mode == mm.OFF:
             self.p_dem, self.v_dem = self.position, 0.0
         elif mode != mm.POSITION:

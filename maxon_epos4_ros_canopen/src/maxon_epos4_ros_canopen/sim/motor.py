@@ -15,6 +15,9 @@ from typing import Optional
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 
 OFF, POSITION, VELOCITY, CURRENT = 0, 1, 2, 3
+# Slower than this the rotor counts as at rest: a drive ends a stop ramp
+# here, and static friction holds an unpowered rotor this slow.
+STANDSTILL_RPM = 1.0
 
 
 class MotorModel:
@@ -47,8 +50,8 @@ class MotorModel:
     def step(self, dt: float, mode: int, position_ref: float = 0.0, velocity_ref: float = 0.0,
              current_ref: float = 0.0) -> None:
         """Advance ``dt`` seconds in sub-steps short enough to stay stable."""
-        if mode == OFF and self.velocity == 0.0:
-            self.current = 0.0
+        if mode == OFF and abs(self.velocity) < STANDSTILL_RPM:
+            self.velocity = self.current = 0.0
             return
         steps = max(1, int(math.ceil(dt / 0.0025)))
         h = dt / steps
@@ -70,7 +73,7 @@ class MotorModel:
             else:
                 self.current = 0.0
             self._integrate(h)
-        if mode == OFF and abs(self.velocity) < 0.5:
+        if mode == OFF and abs(self.velocity) < STANDSTILL_RPM:
             self.velocity = 0.0  # static friction holds a slow coasting rotor
 
     def _velocity_loop(self, velocity_cmd: float) -> None:
