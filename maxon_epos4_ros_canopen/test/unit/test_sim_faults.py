@@ -179,3 +179,26 @@ def test_a_fault_reaction_ends_at_standstill_however_coarse_the_steps(rig, step)
     assert velocity == 0.0
     assert abs(position - stopped_at) < 1.0, "the rotor moved %.1f inc after the power stage went off" % (
         position - stopped_at)
+
+
+def test_a_drive_goes_on_turning_while_its_interface_is_down(rig):
+    """A bus that goes down (the interface, not the drive) stops no drive's
+    control loop: a drive turning at 500 rpm turns on, and the simulator
+    still serves its own calls (fault injection) meanwhile."""
+    import can
+    from test_sim_support import spin_up
+    node = rig.remote(1)
+    spin_up(node, rig, 500)
+    receive = rig.sim.bus.recv
+
+    def interface_down(timeout=None):
+        raise can.CanOperationError("Network is down")
+    rig.sim.bus.recv = interface_down
+    try:
+        first = rig.sim.call(lambda: rig.sim.nodes[1].position)
+        assert rig.wait(lambda: rig.sim.call(lambda: rig.sim.nodes[1].position) - first > 3200)  # a turn
+        assert "silent" in rig.sim.inject_fault(1, "silent", duration=0.0)
+        rig.sim.inject_fault(1, "clear")
+    finally:
+        rig.sim.bus.recv = receive
+    assert rig.wait(lambda: node.sdo[0x606C].raw > 450)

@@ -67,6 +67,9 @@ class Simulator:
         self.frames_in = 0
         self.frames_out = 0
         self.busy_time = 0.0
+        self.bus_error: Optional[str] = None  # why receiving fails, while it does
+        self.send_error: Optional[str] = None  # why sending fails, while it does
+        self.frames_lost = 0  # frames that could not be sent
         self.cpu_seconds = 0.0  # CPU time of the loop thread, for benchmarks
         self._cpu0 = 0.0
         self._calls: "queue.Queue[Tuple[Callable[[], Any], dict]]" = queue.Queue()
@@ -100,8 +103,15 @@ class Simulator:
         try:
             self.bus.send(msg)
             self.frames_out += 1
-        except can.CanError as exc:  # bus full or down: the real drive would retry
-            log.warning("send 0x%03X failed: %s", cob_id, exc)
+        except can.CanError as exc:  # bus full or down: the frame is lost, as on a real bus
+            self.frames_lost += 1
+            if self.send_error is None:
+                log.warning("send 0x%03X failed: %s (further failures counted, not logged)", cob_id, exc)
+            self.send_error = str(exc)
+            return
+        if self.send_error is not None:
+            log.info("sending again; %d frames lost after: %s", self.frames_lost, self.send_error)
+            self.send_error = None
 
     def _mark_routes(self, node_id: Optional[int] = None) -> None:
         """A node's COB-IDs may have changed (None: any node's)."""
@@ -161,9 +171,26 @@ class Simulator:
             self._rebuild_routes()
 
     # -------------------------------------------------------------- loop
+    def _receive(self, timeout: float) -> Optional[can.Message]:
+        """The next frame, or None after ``timeout`` s. An interface that is
+        down (a cut bus) stops no drive's control loop: the drives go on
+        moving, supervising and serving calls; the outage is logged once."""
+        try:
+            msg = self.bus.recv(timeout=timeout)
+        except can.CanError as exc:
+            if self.bus_error is None:
+                log.warning("receiving: %s: the drives run on without the bus", exc)
+            self.bus_error = str(exc)
+            time.sleep(min(timeout, self.tick_period))
+            return None
+        if self.bus_error is not None:
+            log.info("receiving again after: %s", self.bus_error)
+            self.bus_error = None
+        return msg
+
     def step(self, timeout: float) -> None:
         """Receive for up to ``timeout`` s, then tick if due (one loop pass)."""
-        msg = self.bus.recv(timeout=max(0.0, timeout))
+        msg = self._receive(max(0.0, timeout))
         start = time.perf_counter()
         now = self.clock()
         if self._routes_dirty:
@@ -172,7 +199,7 @@ class Simulator:
         while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
             self.handle(msg, now)
             burst += 1
-            msg = self.bus.recv(timeout=0.0) if burst < 256 else None
+            msg = self._receive(0.0) if burst < 256 else None
             if msg is not None:
                 now = self.clock()
         while not self._calls.empty():
