@@ -303,6 +303,25 @@ def test_shutdown_disables_stops_sync_and_nmt(rig):
     assert rig.read(0x6061) == 1 and rig.state() == State.OPERATION_ENABLED
 
 
+def test_shutdown_disables_over_sdo_a_drive_that_left_operational_by_itself(rig):
+    """The drive's heartbeat consumer tripped while the master stalled: it
+    quick-stopped and went pre-operational (0x1029), where it takes no PDO
+    and sends none. Shutdown brings it to Switch On Disabled over SDO and
+    releases its consumer, rather than wait on PDOs that never come."""
+    d = rig.start()
+    assert d.init().success
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 500.0).success
+    assert until(lambda: rig.read(0x606C) > 450)
+    d._heartbeat.stop()  # the master stalls: no heartbeat for longer than the consumer time
+    assert until(lambda: rig.sim.nodes[1].nmt_state == 0x7F and rig.read(0x606C) == 0)
+    assert rig.state() == State.QUICK_STOP_ACTIVE
+    r = d.shutdown()
+    assert rig.state() == State.SWITCH_ON_DISABLED, r.message
+    assert rig.read(0x1016, 1) == 0
+    assert "operation_enabled" not in r.message, r.message
+
+
 @pytest.mark.parametrize("switching_state, through_disabled", [(2, True), (5, False)])
 def test_mode_switch_is_generic_and_uses_switching_state(rig, switching_state, through_disabled):
     d = rig.start(defaults={"switching_state": switching_state})

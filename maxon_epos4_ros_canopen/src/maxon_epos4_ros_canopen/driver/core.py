@@ -1186,28 +1186,9 @@ class Driver:
 
     def _disable_all(self, names: Sequence[str]) -> List[str]:
         """Disable every node over SDO (no cycle runs): the problems."""
-        _, errors = self._each_node_collect(names, self._disable)
+        _, errors = self._each_node_collect(names, lambda name: self._stop_and_disable(
+            name, "disabling after the failed init"))
         return [errors[n] for n in names if n in errors]
-
-    def _disable(self, name: str) -> None:
-        """An enabled drive first stops on its quick stop ramp (it was
-        holding where it stood: that is at once), then the power goes off;
-        a drive switched on is disabled at once."""
-        nid = self._nodes[name].cfg.node_id
-        step = "reading the statusword 0x6041"
-        try:
-            state = cia402.state_or_none(int(self._upload(name, STATUSWORD)))
-            if state == State.OPERATION_ENABLED:
-                step = "writing controlword 0x6040 = 0x%04X (quick stop)" % cia402.CW_QUICK_STOP
-                self._download(name, CONTROLWORD.index, 0, cia402.CW_QUICK_STOP.to_bytes(2, "little"))
-                step = "waiting for standstill"
-                self._await(name, VELOCITY_ACTUAL, lambda v: abs(v) <= _STANDSTILL, "velocity %d")
-                state = State.QUICK_STOP_ACTIVE
-            if state in (State.QUICK_STOP_ACTIVE, State.SWITCHED_ON, State.READY_TO_SWITCH_ON):
-                step = "writing controlword 0x6040 = 0x0000 (disable voltage)"
-                self._download(name, CONTROLWORD.index, 0, cia402.CW_DISABLE_VOLTAGE.to_bytes(2, "little"))
-        except (SdoAbortedError, SdoCommunicationError, _Timeout) as e:
-            raise _InitError("%s (node %d): disabling after the failed init: %s: %s" % (name, nid, step, e)) from None
 
     def _home(self, name: str, method: int) -> Result:
         r = self._switch(name, HOMING.number, force=True)
@@ -1443,18 +1424,10 @@ class Driver:
         if self._thread is not None:
             snap = self._snapshot.axes
             self._post(_StopInPlace(tuple(names)))
-            enabled = [n for n in names if snap[n].state == State.OPERATION_ENABLED and snap[n].attached]
-            err = self._go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False)
-            if err:
-                problems.append(err)
-            # the power goes off only once the quick stop ramp is done
-            problems.extend(self._wait_standstill(enabled))
-            snap = self._snapshot.axes
-            live = [n for n in names if snap[n].attached and snap[n].state not in (State.FAULT, None)]
-            err = self._go(live, State.SWITCH_ON_DISABLED, stop_on_error=False)
-            if err:
-                problems.append(err)
-            self._release_heartbeat_consumers(live)
+            attached = [n for n in names if snap[n].attached]
+            _, errors = self._each_node_collect(attached, self._stop_and_disable)
+            problems.extend(errors[n] for n in attached if n in errors)
+            self._release_heartbeat_consumers([n for n in attached if n not in errors])
         self._stop_cycle()
         # The cycle thread is gone: the axes are this thread's again.
         for axis in self._axes:
@@ -1481,37 +1454,63 @@ class Driver:
         self.initialized = False
         return problems
 
-    def _wait_standstill(self, names: Sequence[str]) -> List[str]:
-        """Wait until each drive has stopped on its quick stop ramp (or left
-        Quick Stop Active by itself at its end), at most the ramp's time from
-        the velocity and 0x6085 (quick stop deceleration) plus a margin."""
-        problems = []
-        deadline = time.monotonic()
-        for name in names:
-            try:
-                velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
-                deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
-                    QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
-            except Exception as e:  # a drive that does not answer must not hold up the others
-                problems.append("%s: quick stop not confirmed (%s)" % (name, e))
-                continue
-            ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
-            deadline = max(deadline, time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout))
-        for name in names:
-            while True:
-                a = self._snapshot.axes[name]
-                if a.state != State.QUICK_STOP_ACTIVE:
-                    break
-                try:
-                    if abs(int(self._upload(name, VELOCITY_ACTUAL))) <= _STANDSTILL:
-                        break
-                except Exception:
-                    break
-                if time.monotonic() > deadline:
-                    problems.append("%s still moving when the quick stop time ran out" % name)
-                    break
-                time.sleep(0.02)
-        return problems
+    def _stop_and_disable(self, name: str, why: str = "shutting down") -> None:
+        """Shutdown of one drive, judged by its own SDO answers: quick stop,
+        standstill, disable voltage. A drive that left OPERATIONAL by
+        itself (its heartbeat consumer tripped, 0x1029) takes no RxPDO and
+        sends no TxPDO, and a TxPDO anyone could have sent proves nothing:
+        SDO reaches and answers in OPERATIONAL and PRE-OPERATIONAL alike.
+        Each controlword goes to the cycle first, so the RxPDO carries the
+        same command and none still on its way can undo it (enable
+        operation takes Quick Stop Active back to Operation Enabled,
+        transition 16)."""
+        nid = self._nodes[name].cfg.node_id
+        step = "reading the statusword 0x6041"
+        try:
+            state = cia402.state_or_none(int(self._upload(name, STATUSWORD)))
+            if state == State.OPERATION_ENABLED:
+                step = "quick stop"
+                self._command(name, State.QUICK_STOP_ACTIVE, cia402.CW_QUICK_STOP)
+                step = "waiting for standstill"
+                state = self._standstill(name)
+            if state in (State.QUICK_STOP_ACTIVE, State.SWITCHED_ON, State.READY_TO_SWITCH_ON):
+                step = "disable voltage"
+                self._command(name, State.SWITCH_ON_DISABLED, cia402.CW_DISABLE_VOLTAGE)
+                step = "confirming switch_on_disabled"
+                self._await(name, STATUSWORD, lambda v: cia402.state_or_none(v) == State.SWITCH_ON_DISABLED,
+                            "statusword 0x6041 = 0x%%04X after %g s" % self.state_timeout)
+        except (SdoAbortedError, SdoCommunicationError, _Timeout) as e:
+            raise _InitError("%s (node %d): %s: %s: %s" % (name, nid, why, step, e)) from None
+
+    def _command(self, name: str, state: State, controlword: int) -> None:
+        """``controlword`` to the drive over SDO, once the cycle's RxPDO (if
+        a cycle runs) carries it too."""
+        if self._thread is not None:
+            after = self._post(_StateRequest((name,), state, False))
+            self._wait(lambda s: True, 1.0, after)
+        self._download(name, CONTROLWORD.index, 0, controlword.to_bytes(2, "little"))
+
+    def _standstill(self, name: str) -> Optional[State]:
+        """Wait until the drive has stopped on its quick stop ramp (or left
+        Quick Stop Active by itself at its end), at most the ramp's time
+        from the velocity and 0x6085 (quick stop deceleration) plus a
+        margin; the state it is in then. Raises _Timeout when it still
+        moves."""
+        velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
+        deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
+            QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
+        ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
+        deadline = time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout)
+        while True:
+            state = cia402.state_or_none(int(self._upload(name, STATUSWORD)))
+            if state != State.QUICK_STOP_ACTIVE:
+                return state
+            velocity = int(self._upload(name, VELOCITY_ACTUAL))
+            if abs(velocity) <= _STANDSTILL:
+                return state
+            if time.monotonic() > deadline:
+                raise _Timeout("still moving (0x606C = %d) when the quick stop time ran out" % velocity)
+            time.sleep(0.02)
 
     def _release_heartbeat_consumers(self, names: Sequence[str]) -> None:
         """A drive disabled by shutdown need not watch the master any more:
