@@ -62,6 +62,9 @@ NMT_START, NMT_STOP, NMT_ENTER_PRE_OPERATIONAL, NMT_RESET_NODE = 0x01, 0x02, 0x8
 _PDO_MISSING_CYCLES = 50
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
+# Shutdown goes through the cycle for a drive whose statusword TxPDO came
+# within this many cycles, over SDO for the others.
+_HEARD_CYCLES = 20
 _SDO_ATTEMPTS = 3  # tries of a transfer whose answer did not come
 _SDO_FOREIGN_ANSWERS = 7  # more tries when the answer was another client's
 _KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
@@ -810,9 +813,11 @@ class Driver:
 
     def _go(self, names: Sequence[str], state: State, fault_reset: bool = False,
             timeout: Optional[float] = None, stop_on_error: bool = True,
-            together: Sequence[Any] = ()) -> Optional[str]:
+            together: Sequence[Any] = (), unheard_cycles: Optional[int] = None) -> Optional[str]:
         """Drive joints to a CiA 402 state through the cycle; an error text or
-        None. ``together``: requests the cycle takes in the same breath."""
+        None. ``together``: requests the cycle takes in the same breath.
+        ``unheard_cycles``: stop waiting for a drive whose statusword TxPDO
+        has not come for that many cycles."""
         names = tuple(names)
         if not names:
             return None
@@ -822,8 +827,12 @@ class Driver:
             # on a statusword that came after the request, not a stale one
             return a.held_state == state and a.target_state is None and a.state == state and a.status_cycle > after
 
+        def unheard(s: DriverSnapshot, a: AxisSnapshot) -> bool:
+            return unheard_cycles is not None and s.cycle - max(a.status_cycle, after) > unheard_cycles
+
         def settled(s: DriverSnapshot) -> bool:
-            return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) for n in names)
+            return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) or unheard(s, s.axes[n])
+                       for n in names)
         reached = self._wait(settled, timeout or self.state_timeout, after)
         snap = self._snapshot
         problems = []
@@ -1425,8 +1434,17 @@ class Driver:
             snap = self._snapshot.axes
             self._post(_StopInPlace(tuple(names)))
             attached = [n for n in names if snap[n].attached]
-            _, errors = self._each_node_collect(attached, self._stop_and_disable)
-            problems.extend(errors[n] for n in attached if n in errors)
+            # The drives the cycle hears are stopped and disabled through it,
+            # all at once; those it does not hear (a drive that left
+            # OPERATIONAL by itself takes no RxPDO and sends no TxPDO) and
+            # those it could not bring there, one by one over SDO.
+            cycle = self._snapshot.cycle
+            heard = [n for n in attached if cycle - snap[n].status_cycle <= _HEARD_CYCLES
+                     and snap[n].nmt_state not in ("STOPPED", "PRE-OPERATIONAL", "LOST")]
+            done = self._stop_and_disable_by_pdo(heard)
+            rest = [n for n in attached if n not in done]
+            _, errors = self._each_node_collect(rest, self._stop_and_disable)
+            problems.extend(errors[n] for n in rest if n in errors)
             self._release_heartbeat_consumers([n for n in attached if n not in errors])
         self._stop_cycle()
         # The cycle thread is gone: the axes are this thread's again.
@@ -1453,6 +1471,58 @@ class Driver:
         self._close()
         self.initialized = False
         return problems
+
+    def _stop_and_disable_by_pdo(self, names: Sequence[str]) -> List[str]:
+        """Quick stop, standstill and disable voltage through the cycle; the
+        names now in Switch On Disabled or Fault. The power goes off only
+        once a drive's standstill is read over SDO (a TxPDO anyone could
+        have sent proves nothing); one not confirmed is left to SDO."""
+        snap = self._snapshot.axes
+        enabled = [n for n in names if snap[n].state == State.OPERATION_ENABLED]
+        self._go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False, unheard_cycles=_HEARD_CYCLES)
+        snap = self._snapshot.axes
+        # options 0-2 end the quick stop in Switch On Disabled by themselves
+        stopping = [n for n in enabled if snap[n].state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)]
+        at_rest = self._wait_standstill(stopping)
+        live = [n for n in names if (n in at_rest or n not in enabled) and snap[n].state not in (State.FAULT, None)]
+        self._go(live, State.SWITCH_ON_DISABLED, stop_on_error=False, unheard_cycles=_HEARD_CYCLES)
+        snap = self._snapshot.axes
+        return [n for n in names if snap[n].state in (State.SWITCH_ON_DISABLED, State.FAULT)
+                and (n in at_rest or n not in enabled)]
+
+    def _wait_standstill(self, names: Sequence[str]) -> List[str]:
+        """Wait until each drive has stopped on its quick stop ramp (or left
+        Quick Stop Active by itself at its end), at most the ramp's time
+        from the velocity and 0x6085 (quick stop deceleration) plus a
+        margin, all drives at once; the names confirmed at rest."""
+        deadline = time.monotonic()
+        for name in names:
+            try:
+                velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
+                deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
+                    QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
+                ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
+            except (SdoAbortedError, SdoCommunicationError):
+                ramp = self.state_timeout
+            deadline = max(deadline, time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout))
+        at_rest: List[str] = []
+        waiting = list(names)
+        while waiting:
+            for name in list(waiting):
+                if self._snapshot.axes[name].state == State.SWITCH_ON_DISABLED:
+                    at_rest.append(name)  # the end of the ramp (options 0-2)
+                    waiting.remove(name)
+                    continue
+                try:
+                    if abs(int(self._upload(name, VELOCITY_ACTUAL))) <= _STANDSTILL:
+                        at_rest.append(name)
+                        waiting.remove(name)
+                except (SdoAbortedError, SdoCommunicationError):
+                    pass  # not known yet: asked again until the deadline
+            if not waiting or time.monotonic() > deadline:
+                return at_rest
+            time.sleep(0.02)
+        return at_rest
 
     def _stop_and_disable(self, name: str, why: str = "shutting down") -> None:
         """Shutdown of one drive, judged by its own SDO answers: quick stop,
