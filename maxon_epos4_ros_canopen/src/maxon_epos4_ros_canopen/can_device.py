@@ -1,4 +1,5 @@
-"""Naming a CAN adapter in one string, as ``bus/device`` and the tools take it.
+"""Naming a CAN adapter in one string, as ``bus/device`` and the tools take
+it; and when a received frame reached the host.
 
 ``can0`` is a SocketCAN interface (ros_canopen's only kind); ``INTERFACE:CHANNEL``
 is any adapter python-can supports: ``pcan:PCAN_USBBUS1``, ``ixxat:0``,
@@ -7,6 +8,7 @@ is any adapter python-can supports: ``pcan:PCAN_USBBUS1``, ``ixxat:0``,
 from __future__ import annotations
 
 import errno
+import time
 from typing import Optional, Tuple
 
 import can
@@ -16,6 +18,21 @@ SOCKETCAN = "socketcan"
 # with `ip link`, python-can's virtual bus has none).
 NO_BITRATE = frozenset({SOCKETCAN, "virtual", "socketcand"})
 DEFAULT_BITRATE = 1000000  # maxon's recommendation for EPOS4 networks
+
+
+# A receive stamp further from the wall clock than this is an adapter's own
+# clock (or the wall clock stepped): the frame counts as read on arrival.
+MAX_RECEIVE_LAG = 5.0
+
+
+def arrival_time(timestamp: float, read_at: float) -> float:
+    """When a frame read at ``read_at`` (monotonic, or any clock in seconds)
+    reached the host. The kernel stamps each frame as it arrives
+    (python-can's ``timestamp``, wall clock on SocketCAN and the virtual
+    bus); its distance from the wall clock when the frame is read is how
+    long it waited in the socket."""
+    lag = time.time() - timestamp
+    return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
 
 
 class CanDeviceError(Exception):

@@ -233,10 +233,61 @@ def test_a_sync_that_finds_the_master_lost_applies_no_rxpdo_received_before(rig)
         values = dict(drive.store.values)
         values[(0x6040, 0)] = 0x000F
         data = rpdo.pack(values)
+        t = rig.sim.bus_time
         for _ in range(50):
             drive.on_frame(rpdo.cob_id, data, False, drive.t)
-            drive.on_sync(drive.t + 0.01)
+            t += 0.01
+            rig.sim.bus_time = t  # the SYNC's arrival, as the loop would note it
+            drive.on_sync(max(t, drive.t + 0.01))
     rig.sim.call(cycles_without_the_masters_heartbeat)
     assert rig.sim.nodes[1].nmt_state == 0x7F  # pre-operational (0x1029 sub 1 = 0)
     assert rig.wait(lambda: node.sdo[0x606C].raw == 0)
     assert node.sdo[0x6041].raw & 0x6F == 0x07  # still quick stop active
+
+
+def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_arrived(rig):
+    """A real drive never falls behind the bus; the simulating process can,
+    on a loaded host, with frames waiting in its socket. Its consumer must
+    judge by when each heartbeat reached it, not by when its loop got to
+    it: the master's heartbeats, 20 ms apart on the bus, must not count as
+    a master loss because the SYNCs queued between them took the loop
+    longer than the consumer time to work through. A master that really
+    stops is still noticed."""
+    import threading
+    import time
+
+    node = rig.remote(1)
+    _watch_master(node)  # 100 ms
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.send(0x000, bytes([0x01, 1]))  # operational: every SYNC advances the drive
+    assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
+    master.stop()
+    handle = rig.sim.handle
+
+    def slow_handle(msg, now):  # a starved loop: 2 ms for every frame
+        time.sleep(0.002)
+        handle(msg, now)
+    rig.sim.handle = slow_handle
+    heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+    for _ in range(15):  # each SYNC advances the drive; 60 of them = 120 ms of work per heartbeat
+        rig.raw.send(heartbeat)
+        for _ in range(60):
+            rig.raw.send(sync)
+        time.sleep(0.02)
+    rig.raw.send(heartbeat)
+    # the loop works through its backlog; then the heartbeats stop for real
+    caught_up = threading.Event()
+    rig.sim.call(caught_up.set, timeout=60.0)
+    assert caught_up.is_set()
+    rig.sim.handle = handle
+    assert rig.sim.read(1, 0x6041) & 0x6F == 0x27, "the drive left operation enabled"
+    emcys = []
+    while True:
+        msg = rig.raw.recv(timeout=0)
+        if msg is None:
+            break
+        emcys += [msg] if _is_emcy(msg) else []
+    assert not emcys, "EMCY 0x8130 while the master's heartbeats were on the bus"
+    assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"

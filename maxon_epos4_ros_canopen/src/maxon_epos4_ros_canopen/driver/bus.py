@@ -12,13 +12,12 @@ from typing import List, Optional, Tuple
 
 import can
 
-from ..can_device import open_device
+from ..can_device import arrival_time, open_device
 from ..config import BusConfig, HeartbeatConfig
 
 SYNC_COB_ID = 0x080
 # A receive timestamp further than this from the host's wall clock is taken
 # for an adapter's own clock: how long the frame waited is then unknown.
-MAX_RECEIVE_LAG = 5.0
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
 
@@ -164,10 +163,8 @@ class ReceiveClock(can.Listener):
     A loaded host can leave the notifier thread unscheduled for a while
     with frames waiting in the socket. A watchdog that judged a drive by
     when its frames were read would then take the driver's own stall for
-    the drive's silence. The kernel stamps each frame as it arrives
-    (python-can's ``timestamp``, wall clock on SocketCAN and the virtual
-    bus); its distance from the wall clock when the frame is read is how
-    long it waited, which moves the arrival onto the monotonic clock.
+    the drive's silence: each frame counts from when it arrived
+    (``can_device.arrival_time``).
 
     ``progress`` is replaced whole by the notifier thread, one immutable
     tuple: (monotonic time the latest frame was read, when it arrived)."""
@@ -176,11 +173,7 @@ class ReceiveClock(can.Listener):
         now = time.monotonic()
         self.progress: Tuple[float, float] = (now, now)
 
-    @staticmethod
-    def arrival(timestamp: float, read_at: float) -> float:
-        """The monotonic time a frame read at ``read_at`` reached the host."""
-        lag = time.time() - timestamp
-        return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
+    arrival = staticmethod(arrival_time)
 
     def on_message_received(self, msg: can.Message) -> None:
         now = time.monotonic()

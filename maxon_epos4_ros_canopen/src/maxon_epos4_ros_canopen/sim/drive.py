@@ -78,8 +78,15 @@ class VirtualEpos4:
     def __init__(self, node_id: int, od: canopen.ObjectDictionary, transport: Transport,
                  now: float, hard_stop: Optional[Tuple[float, float]] = None,
                  sdo_timeout: float = 1.0, on_routes_changed: Optional[Callable[[], None]] = None,
-                 initial: Optional[Dict[Tuple[int, int], Any]] = None):
+                 initial: Optional[Dict[Tuple[int, int], Any]] = None,
+                 bus_time: Optional[Callable[[], float]] = None):
         self.on_routes_changed = on_routes_changed
+        # The heartbeat consumer's clock: when the frame being handled
+        # reached the host, or the time now once no frame waits (see
+        # Simulator.bus_time). A real drive never falls behind the bus; this
+        # process can, and must not take a backlog of its own for a silent
+        # master. Without it, the time the frame is handled.
+        self.bus_time = bus_time
         self.node_id = node_id
         self.transport = transport
         self.store = ObjectStore(od, initial)
@@ -159,8 +166,7 @@ class VirtualEpos4:
         """(Re)read 0x1016: every entry starts unarmed (CiA 301: supervision
         begins with the first heartbeat received from the watched node)."""
         self.consumers: Dict[int, float] = {}  # watched node id -> timeout (s)
-        self.supervision_t = getattr(self, "supervision_t", 0.0)  # slowed time, see tick
-        self.heartbeat_seen: Dict[int, float] = {}  # armed entries: node id -> last heartbeat
+        self.heartbeat_seen: Dict[int, float] = {}  # armed entries: node id -> last heartbeat (bus time)
         for sub in range(1, 128):
             if (0x1016, sub) not in self.store:
                 break
@@ -168,9 +174,13 @@ class VirtualEpos4:
             if node_id and node_id != self.node_id:
                 self.consumers[node_id] = timeout
 
+    def _supervision_time(self, now: float) -> float:
+        return self.bus_time() if self.bus_time is not None else now
+
     def _check_consumers(self, now: float) -> None:
+        bus_now = self._supervision_time(now)
         for node_id, last in list(self.heartbeat_seen.items()):
-            if self.supervision_t - last > self.consumers[node_id]:
+            if bus_now - last > self.consumers[node_id]:
                 del self.heartbeat_seen[node_id]  # unarmed until the next heartbeat
                 self._heartbeat_lost(node_id, now)
 
@@ -223,7 +233,7 @@ class VirtualEpos4:
             return
         if cob_id - 0x700 in self.consumers and not remote:
             if data:  # a heartbeat (or boot-up) of a watched node arms/feeds its entry
-                self.heartbeat_seen[cob_id - 0x700] = self.supervision_t
+                self.heartbeat_seen[cob_id - 0x700] = self._supervision_time(now)
             return
         if cob_id == 0x700 + self.node_id:
             if remote:  # node guarding
@@ -602,10 +612,6 @@ class VirtualEpos4:
         # A starved loop must not integrate one huge step (the position loop
         # would overshoot): the simulated time then runs slower than the clock.
         dt = min(dt, MAX_STEP)
-        # The heartbeat consumer runs on the same slowed time: a real drive
-        # never stalls, so a stall of this process (a loaded host, user-mode
-        # Linux) must not count as silence of the master.
-        self.supervision_t += dt
         if self._delayed:
             due = [d for d in self._delayed if d[0] <= now]
             self._delayed = [d for d in self._delayed if d[0] > now]

@@ -18,7 +18,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 import can
 import canopen
 
-from ..can_device import open_device
+from ..can_device import arrival_time, open_device
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
 
@@ -64,6 +64,11 @@ class Simulator:
         self.bus = bus
         self.tick_period = tick
         self.clock = clock
+        # When the frame being handled reached the host, on ``clock``; the
+        # time now whenever no frame waits. The nodes' heartbeat consumers
+        # run on it, so frames queued while this loop was starved (a loaded
+        # host) count from when they came, as a real drive would see them.
+        self.bus_time = clock()
         self.frames_in = 0
         self.frames_out = 0
         self.busy_time = 0.0
@@ -92,7 +97,7 @@ class Simulator:
             self.nodes[cfg.node_id] = VirtualEpos4(
                 cfg.node_id, od, self._transmit, now, hard_stop=cfg.hard_stop,
                 on_routes_changed=lambda node_id=cfg.node_id: self._mark_routes(node_id),
-                initial=None if od is own else initial_values(own))
+                initial=None if od is own else initial_values(own), bus_time=self._bus_time_now)
         self._order = {node_id: i for i, node_id in enumerate(self.nodes)}
         self._routes_dirty = True
 
@@ -170,6 +175,9 @@ class Simulator:
         if self._routes_dirty:
             self._rebuild_routes()
 
+    def _bus_time_now(self) -> float:
+        return self.bus_time
+
     # -------------------------------------------------------------- loop
     def _receive(self, timeout: float) -> Optional[can.Message]:
         """The next frame, or None after ``timeout`` s. An interface that is
@@ -197,11 +205,14 @@ class Simulator:
             self._rebuild_routes()
         burst = 0
         while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
+            self.bus_time = max(self.bus_time, arrival_time(msg.timestamp, now))
             self.handle(msg, now)
             burst += 1
             msg = self._receive(0.0) if burst < 256 else None
             if msg is not None:
                 now = self.clock()
+        if burst < 256:  # the socket is empty: the loop is up to date
+            self.bus_time = max(self.bus_time, now)
         while not self._calls.empty():
             fn, box = self._calls.get_nowait()
             try:
