@@ -8,6 +8,7 @@ is any adapter python-can supports: ``pcan:PCAN_USBBUS1``, ``ixxat:0``,
 from __future__ import annotations
 
 import errno
+import socket
 import time
 from typing import Optional, Tuple
 
@@ -33,6 +34,27 @@ def arrival_time(timestamp: float, read_at: float) -> float:
     long it waited in the socket."""
     lag = time.time() - timestamp
     return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
+
+
+# Receive buffer asked for on a SocketCAN socket: about a second of a full
+# 1 Mbit/s bus (some 8,000 frames, each about 1 KB of kernel bookkeeping).
+# The kernel's default holds a few hundred frames: a process the host left
+# unscheduled for a third of a second would lose the rest, heartbeats too.
+RECEIVE_BUFFER_BYTES = 8 * 1024 * 1024
+_SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux; beyond net.core.rmem_max
+
+
+def enlarge_receive_buffer(sock: socket.socket, size: int = RECEIVE_BUFFER_BYTES) -> int:
+    """Ask for a receive buffer of ``size`` bytes: beyond net.core.rmem_max
+    where the process may (CAP_NET_ADMIN), else up to that limit. Returns
+    what the kernel granted (it doubles a request for its bookkeeping)."""
+    for option in (_SO_RCVBUFFORCE, socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, size)
+            break
+        except OSError:  # not permitted: the plain option, capped by rmem_max
+            continue
+    return sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
 
 
 class CanDeviceError(Exception):
@@ -69,10 +91,14 @@ def open_device(device: str, bitrate: Optional[int] = None, receive_own_messages
     if interface not in NO_BITRATE:
         kwargs["bitrate"] = int(bitrate) if bitrate else DEFAULT_BITRATE
     try:
-        return can.Bus(**kwargs)
+        bus = can.Bus(**kwargs)
     except Exception as exc:  # python-can raises OSError, CanError, NameError, ImportError ... per adapter
         raise CanDeviceError("CAN device %r (python-can interface %s, channel %s): %s%s"
                              % (device, interface, channel, exc, _hint(interface, channel, exc))) from None
+    sock = getattr(bus, "socket", None)
+    if interface == SOCKETCAN and isinstance(sock, socket.socket):
+        enlarge_receive_buffer(sock)
+    return bus
 
 
 def _hint(interface: str, channel: str, exc: Exception) -> str:

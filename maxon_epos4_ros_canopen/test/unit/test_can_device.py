@@ -93,3 +93,20 @@ def test_config_rejects_unknown_interface_and_odd_bitrate():
 def test_bitrate_on_socketcan_is_reported_as_ignored():
     cfg = load_config(layers({"device": "can0", "bitrate": 1000000}), "test", lambda p: "/")
     assert any("bus/bitrate ignored for can0" in w for w in cfg.warnings)
+
+
+def test_a_receive_buffer_is_enlarged_to_hold_a_second_of_a_full_bus():
+    """The kernel's default socket receive buffer holds a few hundred CAN
+    frames: a process the host leaves unscheduled longer loses the rest.
+    Where the process may (root, CAP_NET_ADMIN) the buffer goes beyond
+    net.core.rmem_max; elsewhere up to it, never smaller than it was."""
+    import os
+    import socket
+    from maxon_epos4_ros_canopen.can_device import RECEIVE_BUFFER_BYTES, enlarge_receive_buffer
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:  # the same option on any socket
+        before = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        granted = enlarge_receive_buffer(sock)
+        assert granted == sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        assert granted >= before
+        if os.geteuid() == 0:
+            assert granted >= RECEIVE_BUFFER_BYTES
