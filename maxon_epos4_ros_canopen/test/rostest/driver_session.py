@@ -6,7 +6,6 @@ Imported by the executable test scripts next to it (not a test itself).
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import threading
 import time
@@ -19,7 +18,8 @@ from canopen.sdo.exceptions import SdoError
 import yaml
 from sensor_msgs.msg import JointState
 
-SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # Linux: root may exceed rmem_max
+from maxon_epos4_ros_canopen.can_device import enlarge_receive_buffer
+
 CLI_TIMEOUT = 120.0  # user-mode Linux runs ROS tools 6-10x slower than native
 WAIT = 90.0
 
@@ -205,13 +205,8 @@ class BusRecorder:
 
     def __init__(self, device: str, can_filters: Optional[List[Dict[str, Any]]] = None) -> None:
         self.bus = can.Bus(interface="socketcan", channel=device, can_filters=can_filters)
-        # The kernel charges each buffered CAN frame near 1 KiB: with the
-        # default receive buffer a reader that falls 1 s behind on a loaded
-        # host (user-mode Linux) loses frames. Room for minutes of traffic.
-        try:
-            self.bus.socket.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 64 * 1024 * 1024)
-        except OSError:
-            self.bus.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 64 * 1024 * 1024)
+        # a recording may fall far behind on a loaded host: room for minutes of traffic
+        enlarge_receive_buffer(self.bus.socket, 64 * 1024 * 1024)
         self.frames: List[can.Message] = []
         self._lock = threading.Lock()
         self._running = False
