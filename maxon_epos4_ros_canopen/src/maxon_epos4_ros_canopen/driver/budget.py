@@ -37,12 +37,12 @@ from dataclasses import dataclass
 from typing import Callable, Mapping, Optional, Sequence, Tuple, Union
 
 from ..config import DriverConfig, NodeConfig
+from .axis import REFRESH_CYCLES  # the cycle resends an unchanged RxPDO this often
 from .plan import CONTROLWORD, MODE_TARGETS, PRODUCER_HEARTBEAT, RX_REQUIRED, MapPlan, NodePlan
 
 DEFAULT_BITRATE = 1_000_000
 INTERMISSION_BITS = 3
 LOAD_LIMIT = 0.8          # check_budget warns above this share of the bit rate
-REFRESH_CYCLES = 50       # the cycle resends an unchanged RxPDO this often
 MAX_NODES = 127
 SYNC_COB_ID = 0x080
 
