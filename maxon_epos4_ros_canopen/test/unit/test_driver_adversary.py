@@ -203,7 +203,11 @@ def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
 
 
 def test_eight_threads_for_15_seconds_lose_no_command(rig):
-    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+    # Eight busy threads on a loaded host can keep the master's heartbeat
+    # thread (python-can's on the virtual bus; on SocketCAN the kernel sends
+    # it) from the GIL past the drives' 150 ms consumer, which then rightly
+    # stops them. This test is about commands between threads: 2 s.
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)), defaults={"dcf_overlay": {"1016sub1": "0x007F07D0"}})
     assert d.init().success and d.switch_mode([J1, J2], 3).success
     order_lock = threading.Lock()
     last = {}
