@@ -291,3 +291,39 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
         emcys += [msg] if _is_emcy(msg) else []
     assert not emcys, "EMCY 0x8130 while the master's heartbeats were on the bus"
     assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"
+
+
+def test_a_stall_of_the_simulating_process_is_no_silence_of_the_master(rig):
+    """The whole host can stop for a while (user-mode Linux under load):
+    neither the master's heartbeat nor the simulator runs meanwhile, and
+    when both go on, the simulator may look at its consumers before the
+    heartbeat due during the stall has reached its socket. A real drive
+    never stalls; the simulator gives the bus one more pass after a stall
+    of its own before it judges the master. A master that stays silent is
+    still noticed."""
+    import time
+
+    node = rig.remote(1)
+    _watch_master(node)  # 100 ms
+    master = Master(rig)
+    spin_up(node, rig)
+    rig.send(0x000, bytes([0x01, 1]))
+    assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
+    receive = rig.sim._receive
+    passes = []
+    heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
+
+    def host_stalls_once(timeout):
+        passes.append(len(passes))
+        if len(passes) == 1:
+            master.stop()
+            time.sleep(0.3)  # the host stood still: no heartbeat, no loop
+            return None
+        if len(passes) == 2:
+            rig.raw.send(heartbeat)  # the heartbeat due during the stall, sent on resuming
+        return receive(timeout)
+    rig.sim._receive = host_stalls_once
+    assert rig.wait(lambda: len(passes) > 20)
+    rig.sim._receive = receive
+    assert rig.sim.read(1, 0x6041) & 0x6F == 0x27, "the drive took its own stall for a lost master"
+    assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"

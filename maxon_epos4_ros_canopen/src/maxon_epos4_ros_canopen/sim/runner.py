@@ -23,6 +23,8 @@ from .drive import VirtualEpos4
 from .objects import initial_values, load_od
 
 log = logging.getLogger(__name__)
+# A loop pass woken this much later than it asked to be was stalled (s).
+STALL = 0.05
 
 
 @dataclass
@@ -198,9 +200,15 @@ class Simulator:
 
     def step(self, timeout: float) -> None:
         """Receive for up to ``timeout`` s, then tick if due (one loop pass)."""
+        due = self.clock() + max(0.0, timeout)
         msg = self._receive(max(0.0, timeout))
         start = time.perf_counter()
         now = self.clock()
+        # Woken much later than asked: this process (or the whole host)
+        # stood still. A frame the bus carried meanwhile may not have
+        # reached the socket yet; a real drive never stalls, so the
+        # heartbeat consumers get one more pass before the clock counts.
+        stalled = now - due > STALL
         if self._routes_dirty:
             self._rebuild_routes()
         burst = 0
@@ -211,7 +219,7 @@ class Simulator:
             msg = self._receive(0.0) if burst < 256 else None
             if msg is not None:
                 now = self.clock()
-        if burst < 256:  # the socket is empty: the loop is up to date
+        if burst < 256 and not stalled:  # the socket is empty: the loop is up to date
             self.bus_time = max(self.bus_time, now)
         while not self._calls.empty():
             fn, box = self._calls.get_nowait()
