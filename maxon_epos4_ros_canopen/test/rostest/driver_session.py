@@ -6,6 +6,7 @@ Imported by the executable test scripts next to it (not a test itself).
 from __future__ import annotations
 
 import os
+import struct
 import subprocess
 import threading
 import time
@@ -83,7 +84,7 @@ class SdoProbe:
             try:
                 data = self._node(node_id).sdo.upload(index, subindex)
                 return int.from_bytes(data, "little", signed=signed)
-            except (SdoError, can.CanError) as exc:
+            except (SdoError, can.CanError, struct.error) as exc:  # struct.error: a forged short answer
                 last = exc
                 time.sleep(0.5)
         raise AssertionError("SDO read of node %d 0x%04X/%d failed: %s" % (node_id, index, subindex, last))
