@@ -1438,12 +1438,16 @@ class Driver:
             # all at once; those it does not hear (a drive that left
             # OPERATIONAL by itself takes no RxPDO and sends no TxPDO) and
             # those it could not bring there, one by one over SDO.
+            # Heard means statusword TxPDOs coming: a heartbeat's NMT state
+            # (anyone can forge one) does not decide the way.
             cycle = self._snapshot.cycle
-            heard = [n for n in attached if cycle - snap[n].status_cycle <= _HEARD_CYCLES
-                     and snap[n].nmt_state not in ("STOPPED", "PRE-OPERATIONAL", "LOST")]
+            heard = [n for n in attached if cycle - snap[n].status_cycle <= _HEARD_CYCLES]
             done = self._stop_and_disable_by_pdo(heard)
             rest = [n for n in attached if n not in done]
             _, errors = self._each_node_collect(rest, self._stop_and_disable)
+            if rest:
+                # a drive still in OPERATIONAL then shows its last state on the bus too
+                self._wait_cycles(2)
             problems.extend(errors[n] for n in rest if n in errors)
             self._release_heartbeat_consumers([n for n in attached if n not in errors])
         self._stop_cycle()
