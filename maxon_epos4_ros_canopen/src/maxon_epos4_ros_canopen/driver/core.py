@@ -1502,13 +1502,9 @@ class Driver:
         deadline = time.monotonic()
         for name in names:
             try:
-                velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
-                deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
-                    QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
-                ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
+                deadline = max(deadline, self._quick_stop_deadline(name))
             except (SdoAbortedError, SdoCommunicationError):
-                ramp = self.state_timeout
-            deadline = max(deadline, time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout))
+                deadline = max(deadline, time.monotonic() + self.state_timeout)
         at_rest: List[str] = []
         waiting = list(names)
         while waiting:
@@ -1564,17 +1560,23 @@ class Driver:
             self._wait(lambda s: True, 1.0, after)
         self._download(name, CONTROLWORD.index, 0, controlword.to_bytes(2, "little"))
 
+    def _quick_stop_deadline(self, name: str) -> float:
+        """When a drive's quick stop ramp must be done (monotonic): its time
+        from 0x606C and 0x6085 read over SDO, plus a margin, at most the
+        state timeout."""
+        velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
+        deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
+            QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
+        ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
+        return time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout)
+
     def _standstill(self, name: str) -> Optional[State]:
         """Wait until the drive has stopped on its quick stop ramp (or left
         Quick Stop Active by itself at its end), at most the ramp's time
         from the velocity and 0x6085 (quick stop deceleration) plus a
         margin; the state it is in then. Raises _Timeout when it still
         moves."""
-        velocity = abs(int(self._upload(name, VELOCITY_ACTUAL)))
-        deceleration = int(self._upload(name, QUICK_STOP_DECELERATION)) if \
-            QUICK_STOP_DECELERATION.index in self._nodes[name].od else 0
-        ramp = velocity / deceleration if deceleration > 0 else self.state_timeout
-        deadline = time.monotonic() + min(1.5 * ramp + 0.5, self.state_timeout)
+        deadline = self._quick_stop_deadline(name)
         while True:
             state = cia402.state_or_none(int(self._upload(name, STATUSWORD)))
             if state != State.QUICK_STOP_ACTIVE:
