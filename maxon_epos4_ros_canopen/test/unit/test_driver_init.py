@@ -8,7 +8,8 @@ import math
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State, state_from_statusword
-from maxon_epos4_ros_canopen.driver.modes import CONTROLWORD, TARGET_POSITION
+from maxon_epos4_ros_canopen.driver.modes import CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION
+from maxon_epos4_ros_canopen.driver.plan import DRIVER_OWNED
 from test_driver import DCF1, DCF2, J1, J2, Rig, until
 
 SYNC = 0x080
@@ -156,3 +157,77 @@ def test_init_of_127_drives_in_one_process(rig):
     assert until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 2)
     for nid, _, name in nodes:
         assert set(_values(rig, d.joints[name].plan, CONTROLWORD)) == {0x000F}, name
+
+
+def _sdo_requests(frames, node_id):
+    """(command, (index, sub)) of every SDO request to ``node_id``, in bus order:
+    'read' for an upload initiate, 'write' for a download initiate."""
+    out = []
+    for m in frames:
+        data = bytes(m.data)
+        if m.arbitration_id != 0x600 + node_id or len(data) != 8:
+            continue
+        ccs = data[0] >> 5
+        if ccs in (1, 2):  # download or upload initiate
+            out.append(("write" if ccs == 1 else "read", (int.from_bytes(data[1:3], "little"), data[3])))
+    return out
+
+
+def test_init_reads_nothing_it_writes_and_each_state_once(rig):
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+    r = d.init()
+    assert r.success, r.message
+    frames = list(rig._collect())
+    first_sync = next((i for i, m in enumerate(frames) if m.arbitration_id == SYNC), len(frames))
+    for nid, name in ((1, J1), (2, J2)):
+        requests = _sdo_requests(frames[:first_sync], nid)
+        written = {key for command, key in requests if command == "write"}
+        read = {key for command, key in requests if command == "read"}
+        # a value init writes is known: reading it, before (a target about
+        # to be set to hold the drive) or after (a DCF value), only costs a
+        # transfer on a bus all drives share
+        assert not read & written, (nid, ["0x%04X:%d" % k for k in sorted(read & written)])
+        reads = [key for command, key in requests if command == "read"]
+        # the position once (the hold target), the statusword only where the
+        # walk through the CiA 402 states needs the drive's answer
+        assert reads.count((0x6064, 0)) == 1, (nid, reads)
+        controlwords = sum(1 for command, key in requests if command == "write" and key == (0x6040, 0))
+        assert reads.count((0x6041, 0)) == controlwords + 1, (nid, reads)
+        # and the first RxPDOs still carry what the drive holds: the DCF's
+        # values of the objects they map, read by an independent client
+        plan = d.joints[name].plan
+        assert until(lambda: all(rig.sent(m.cob_id) for m in plan.rx if m.enabled))
+        for m in plan.rx:
+            if not m.enabled:
+                continue
+            for key, _bits in m.entries:
+                if key in DRIVER_OWNED:
+                    continue  # commanded by the driver
+                carried = _values(rig, plan, key, signed=key == MODES_OF_OPERATION)
+                assert carried and set(carried) == {rig.read(key.index, key.subindex, node=nid)}, (nid, key, carried)
+
+
+def test_a_pdo_the_plan_leaves_off_is_only_invalidated(rig):
+    d = rig.start(defaults={"pdo_layout": "compact", "modes": ["CSP"]})
+    r = d.init()
+    assert r.success, r.message
+    frames = list(rig._collect())
+    first_sync = next((i for i, m in enumerate(frames) if m.arbitration_id == SYNC), len(frames))
+    writes = [key for command, key in _sdo_requests(frames[:first_sync], 1) if command == "write"]
+    plan = d.joints[J1].plan
+    off = [(0x1400 + m.number - 1, 0x1600 + m.number - 1) for m in plan.rx if not m.enabled] + \
+          [(0x1800 + m.number - 1, 0x1A00 + m.number - 1) for m in plan.tx if not m.enabled]
+    assert off, "the compact CSP layout leaves PDOs off"
+    for comm, mapping in off:
+        # one write: the COB-ID with bit 31 (not valid); no mapping, no timing
+        assert [k for k in writes if k[0] in (comm, mapping)] == [(comm, 1)], hex(comm)
+        assert rig.read(comm, 1) & 0x80000000, hex(comm)
+    for m in plan.tx:
+        if m.enabled:
+            assert not rig.read(0x1800 + m.number - 1, 1) & 0x80000000
+    # what runs is exactly the planned TxPDOs
+    rig.drain()
+    assert until(lambda: len(rig.sent(SYNC)) >= 3)
+    got = {m.arbitration_id for m in rig._collect() if 0x180 <= m.arbitration_id < 0x500 and m.arbitration_id & 0x7F == 1}
+    assert {m.cob_id for m in plan.tx if m.enabled} <= got
+    assert not got & {m.cob_id for m in plan.tx if not m.enabled}

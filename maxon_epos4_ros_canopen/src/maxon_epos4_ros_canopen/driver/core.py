@@ -69,6 +69,11 @@ _SDO_ATTEMPTS = 3  # tries of a transfer whose answer did not come
 _SDO_FOREIGN_ANSWERS = 7  # more tries when the answer was another client's
 _KERNEL_FILTER_MAX = 512  # CAN_RAW_FILTER_MAX of Linux
 _PDO_NOT_VALID, _RTR_NOT_ALLOWED = 0x80000000, 0x40000000
+# What init's enabling writes before the cycle starts, so the first RxPDOs
+# hold the drive where it is: the targets (position: where it stands), and
+# the controlword enable operation.
+_HOLD_TARGETS = (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE)
+_SET_BY_ENABLE = frozenset(_HOLD_TARGETS + (CONTROLWORD,))
 # Nodes init configures at once: each has its own SDO client and lock, the
 # bus interleaves their transfers.
 _INIT_WORKERS = 32
@@ -909,10 +914,11 @@ class Driver:
         return int(self._upload(name, POSITION_ACTUAL))
 
     # ============================================================== init
-    def _configure(self, name: str, reset: bool = True) -> Binding:
+    def _configure(self, name: str, reset: bool = True, enabling: bool = False) -> Binding:
         """NMT reset (init) or enter pre-operational (recover: a reset would
         lose the drive's position counter), then everything the plan says,
-        over SDO."""
+        over SDO. ``enabling``: ``_enable`` follows, and sets the controlword
+        and the position the RxPDOs start with itself."""
         node = self._nodes[name]
         nid = node.cfg.node_id
         if reset:
@@ -932,7 +938,7 @@ class Driver:
             step = "writing the PDO mapping"
             self._write_pdos(name)
             step = "reading the initial values"
-            return self._read_initial(name)
+            return self._read_initial(name, hold=not enabling)
         except SdoAbortedError as e:
             raise _InitError("%s (node %d): %s failed: %s" % (name, nid, step, e)) from None
         except SdoCommunicationError as e:
@@ -941,7 +947,8 @@ class Driver:
 
     def _write_pdos(self, name: str) -> None:
         """The plan's PDO configuration, in CiA 301's order: invalidate, clear
-        the mapping, write it, count, transmission type, validate. (canopen's
+        the mapping, write it, count, transmission type, validate; a PDO the
+        plan leaves off is only invalidated. (canopen's
         Map.save does the same but also subscribes the map to its COB-ID,
         which the driver must not do for RxPDOs.)"""
         plan = self._nodes[name].plan
@@ -951,6 +958,10 @@ class Driver:
                 comm, mapping = comm_base + mp.number - 1, map_base + mp.number - 1
                 rtr = 0 if rx or mp.rtr_allowed else _RTR_NOT_ALLOWED
                 self._write_u32(name, comm, 1, mp.cob_id | _PDO_NOT_VALID | rtr)
+                if not (mp.enabled and mp.entries):
+                    # a PDO left invalid is neither sent nor received: its
+                    # mapping and timing would be transfers for nothing
+                    continue
                 self._write_u8(name, mapping, 0, 0)
                 for sub, (key, bits) in enumerate(mp.entries, start=1):
                     self._write_u32(name, mapping, sub, key.index << 16 | key.subindex << 8 | bits)
@@ -958,23 +969,36 @@ class Driver:
                 self._write_u8(name, comm, 2, mp.trans_type)
                 if mp.event_timer is not None:
                     self._download(name, comm, 5, int(mp.event_timer).to_bytes(2, "little"))
-                if mp.enabled and mp.entries:
-                    self._write_u32(name, comm, 1, mp.cob_id | rtr)
+                self._write_u32(name, comm, 1, mp.cob_id | rtr)
 
-    def _read_initial(self, name: str) -> Binding:
-        """Codecs and first values: every RPDO value from the drive, so the
-        first RPDOs repeat what the drive has (profile velocity...); the
-        objects conversions read that no TPDO carries; the position."""
+    def _known(self, name: str, key: ObjectKey) -> Any:
+        """``key``'s value in the drive: what this configuration has just
+        written to it (a drive holds a value it accepted: reading it back
+        would be one more transfer on a bus all drives share), else read."""
+        data = self._nodes[name].plan.written.get(key)
+        if data is None:
+            return self._upload(name, key)
+        return find_variable(self._nodes[name].od, key).decode_raw(data)
+
+    def _read_initial(self, name: str, hold: bool = True) -> Binding:
+        """Codecs and first values: every RPDO value the drive has (known or
+        read), so the first RPDOs repeat it (profile velocity...); the
+        objects conversions read that no TPDO carries. With ``hold``, the
+        controlword that holds the drive's state and its position too;
+        without, the position and what ``_enable`` sets (_SET_BY_ENABLE)
+        are left to it: it reads the position and writes the others."""
         node = self._nodes[name]
         rx = tuple(RxPdo(node.od, m) for m in enabled_maps(node.plan.rx))
         tx = tuple(TxPdo(node.od, m) for m in enabled_maps(node.plan.tx))
         initial_out: Dict[ObjectKey, int] = {}
         for rpdo in rx:
             for key in rpdo.keys:
+                if not hold and key in _SET_BY_ENABLE:
+                    continue
                 if key == CONTROLWORD:
                     initial_out[key] = holding_controlword(int(self._upload(name, STATUSWORD)))
                 else:
-                    initial_out[key] = int(self._upload(name, key))
+                    initial_out[key] = int(self._known(name, key))
         tx_keys = {k for t in tx for k in t.keys}
         env: Dict[str, float] = {}
         cfg = node.cfg
@@ -982,11 +1006,11 @@ class Driver:
                      cfg.pos_to_device, cfg.vel_to_device, cfg.eff_to_device):
             for key in expr.objects:
                 if key not in tx_keys:
-                    env[object_variable_name(key)] = float(self._upload(name, key))
+                    env[object_variable_name(key)] = float(self._known(name, key))
         self._initial_env[name] = MappingProxyType(dict(env))
-        heartbeat_ms = int(self._upload(name, PRODUCER_HEARTBEAT)) if PRODUCER_HEARTBEAT.index in node.od else 0
-        return Binding(rx, tx, MappingProxyType(initial_out), MappingProxyType(env), self._position(name),
-                       heartbeat_ms, time.monotonic())
+        heartbeat_ms = int(self._known(name, PRODUCER_HEARTBEAT)) if PRODUCER_HEARTBEAT.index in node.od else 0
+        return Binding(rx, tx, MappingProxyType(initial_out), MappingProxyType(env),
+                       self._position(name) if hold else 0, heartbeat_ms, time.monotonic())
 
     def init(self) -> Result:
         """ros_canopen's init: reset, configure, start, home, enable."""
@@ -1101,11 +1125,11 @@ class Driver:
     def _prepare(self, name: str) -> Tuple[Binding, int]:
         """One node's configuration (reset, parameters, PDOs, initial values)
         and its homing method."""
-        binding = self._configure(name)
+        binding = self._configure(name, enabling=True)
         if HOMING_METHOD.index not in self._nodes[name].od:
             return binding, 0
         try:
-            return binding, int(self._upload(name, HOMING_METHOD))
+            return binding, int(self._known(name, HOMING_METHOD))
         except (SdoAbortedError, SdoCommunicationError) as e:
             raise _InitError("%s (node %d): reading the homing method 0x6098 failed: %s"
                              % (name, self._nodes[name].cfg.node_id, e)) from None
@@ -1143,7 +1167,7 @@ class Driver:
                 out[MODES_OF_OPERATION] = mode
             step = "reading the position actual value 0x6064"
             position = self._position(name)
-            for key, value in ((TARGET_POSITION, position), (TARGET_VELOCITY, 0), (TARGET_TORQUE, 0)):
+            for key, value in zip(_HOLD_TARGETS, (position, 0, 0)):
                 step = "writing %s = %d (hold)" % (key, value)
                 self._download(name, key.index, key.subindex, find_variable(node.od, key).encode_raw(value))
                 out[key] = value
@@ -1379,7 +1403,7 @@ class Driver:
                 if a.rebooted:
                     # an incremental encoder restarts at 0: the position
                     # reference is gone, homing (if configured) finds it again
-                    method = int(self._upload(name, HOMING_METHOD)) if HOMING_METHOD.index in self._nodes[name].od else 0
+                    method = int(self._known(name, HOMING_METHOD)) if HOMING_METHOD.index in self._nodes[name].od else 0
                     if method:
                         rehome.append((name, method))
                     else:

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Dict, Iterable, List, Optional, Sequence, Tuple
+from functools import cached_property
+from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary
 from canopen.objectdictionary import datatypes as dt
@@ -93,6 +94,11 @@ class NodePlan:
     tx: Tuple[MapPlan, ...]
     source: str
     modes: Tuple[int, ...] = ()
+
+    @cached_property
+    def written(self) -> Mapping[ObjectKey, bytes]:
+        """The data init writes to each object (DCF values and overlay)."""
+        return {w.key: w.data for w in self.writes}
 
     def rx_keys(self) -> List[ObjectKey]:
         return [k for m in self.rx if m.enabled for k, _ in m.entries]
