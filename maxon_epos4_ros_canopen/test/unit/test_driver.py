@@ -322,6 +322,45 @@ def test_shutdown_disables_over_sdo_a_drive_that_left_operational_by_itself(rig)
     assert "operation_enabled" not in r.message, r.message
 
 
+def test_a_forged_heartbeat_does_not_send_a_drive_it_hears_the_sdo_way_at_shutdown(rig):
+    """Anyone on the bus can send node 1's heartbeat saying pre-operational
+    while the real drive is operational and its TxPDOs keep coming. Shutdown
+    goes by what the drive itself sends: it is stopped and disabled through
+    the cycle like any drive it hears (no controlword by SDO, which in a
+    loaded host competes with every other SDO client), and the last
+    statusword it puts on the bus says Switch On Disabled."""
+    d = rig.start()
+    assert d.init().success
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 500.0).success
+    assert until(lambda: rig.read(0x606C) > 450)
+    forger = can.Bus(interface="virtual", channel=rig.channel)
+    stop = threading.Event()
+
+    def forge():
+        while not stop.is_set():
+            forger.send(can.Message(arbitration_id=0x701, data=[0x7F], is_extended_id=False))
+            time.sleep(0.002)
+    t = threading.Thread(target=forge, daemon=True)
+    t.start()
+    try:
+        assert until(lambda: d.joints[J1].nmt_state == "PRE-OPERATIONAL")  # the forgery is heard
+        rig.drain()
+        r = d.shutdown()
+    finally:
+        stop.set()
+        t.join()
+        forger.shutdown()
+    assert r.success, r.message
+    assert rig.state() == State.SWITCH_ON_DISABLED
+    frames = rig._collect()
+    sdo_controlwords = [bytes(m.data) for m in frames
+                        if m.arbitration_id == 0x601 and bytes(m.data)[1:4] == b"\x40\x60\x00"]
+    assert sdo_controlwords == []
+    statuswords = [int.from_bytes(bytes(m.data)[:2], "little") for m in frames if m.arbitration_id == 0x181]
+    assert statuswords and state_from_statusword(statuswords[-1]) == State.SWITCH_ON_DISABLED
+
+
 @pytest.mark.parametrize("switching_state, through_disabled", [(2, True), (5, False)])
 def test_mode_switch_is_generic_and_uses_switching_state(rig, switching_state, through_disabled):
     d = rig.start(defaults={"switching_state": switching_state})
