@@ -754,6 +754,62 @@ def test_a_forged_short_sdo_answer_is_tried_again_like_another_clients_answer(ri
     assert r.success and int(r.value) == 0x00020192, r.message
 
 
+class _ForgedAbortFirst(can.Listener):
+    """Stands in for a drive's SDO server: to every upload request on
+    0x600 + node_id, first a forged abort naming another object (as a storm
+    leaves on the bus), then the real expedited answer of ``value``."""
+
+    def __init__(self, bus, node_id, value):
+        self.bus, self.node_id, self.value = bus, node_id, value
+        self.requests = 0
+
+    def on_message_received(self, msg):
+        if msg.arbitration_id != 0x600 + self.node_id or msg.data[0] != 0x40:
+            return
+        self.requests += 1
+        other = (int.from_bytes(msg.data[1:3], "little") ^ 0x1111).to_bytes(2, "little") + bytes(msg.data[3:4])
+        for data in (b"\x80" + other + b"\xa8\xef\x12\xf3",
+                     b"\x43" + bytes(msg.data[1:4]) + self.value.to_bytes(4, "little")):
+            self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
+
+
+def test_an_abort_naming_another_object_does_not_end_a_transfer(rig):
+    """CiA 301's abort names the object of the transfer it ends. One naming
+    another (forged, or left over from a storm) is not the drive refusing
+    this transfer: the driver waits on for the answer, which comes."""
+    d = rig.start()
+    assert d.init().success
+    rig.sim.inject_fault(1, "silent")  # only the stand-in below answers
+    bus = rig._bus()
+    server = _ForgedAbortFirst(bus, 1, 0x00020192)
+    notifier = can.Notifier(bus, [server])
+    try:
+        r = d.get_object(J1, "1000")
+    finally:
+        notifier.stop()
+        rig.sim.inject_fault(1, "clear")
+    assert r.success and int(r.value) == 0x00020192, r.message
+    assert server.requests == 1
+
+
+def test_a_frame_that_came_before_the_request_is_no_answer_to_it():
+    """A backlog read late (a starved process) holds frames stamped before
+    the request went out: none of them is its answer. A stamp of another
+    clock (an adapter's own, far from the wall clock) is not judged."""
+    from maxon_epos4_ros_canopen.driver.sdo import GuardedSdoClient
+    client = GuardedSdoClient(0x601, 0x581, None)
+    sent = []
+    client.network = type("Net", (), {"send_message": lambda self, cob, data: sent.append((cob, bytes(data)))})()
+    request = b"\x40\x00\x10\x00" + bytes(4)
+    client.send_request(request)
+    answer = b"\x43\x00\x10\x00\x92\x01\x02\x00"
+    client.on_response(0x581, answer, time.time() - 0.5)      # came before the request
+    assert client.responses.empty()
+    client.on_response(0x581, answer, 12.0)                    # an adapter's own clock
+    client.on_response(0x581, answer, time.time())
+    assert client.responses.qsize() == 2 and sent == [(0x601, request)]
+
+
 def test_sdo_transfers_tell_no_answer_from_another_clients_answer_by_the_timeout_itself(rig):
     """canopen words both as SdoCommunicationError. A missing answer (raised
     from the response queue's timeout) is tried 3 times with longer waits;

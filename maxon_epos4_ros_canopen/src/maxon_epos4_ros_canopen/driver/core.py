@@ -55,6 +55,7 @@ from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSI
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
+from .sdo import GuardedSdoClient
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
@@ -558,7 +559,7 @@ class Driver:
         inbox = self._inbox
         for name, node in self._nodes.items():
             nid = node.cfg.node_id
-            client = SdoClient(0x600 + nid, 0x580 + nid, node.od)
+            client = GuardedSdoClient(0x600 + nid, 0x580 + nid, node.od)
             client.network = network
             client.RESPONSE_TIMEOUT = self.sdo_timeout
             network.subscribe(0x580 + nid, client.on_response)
