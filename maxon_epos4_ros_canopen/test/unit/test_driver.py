@@ -717,21 +717,42 @@ def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(rig):
     assert "heartbeat lost" in d.joints[J1].error
 
 
-class _ShortAnswerFirst(can.Listener):
-    """Stands in for a drive's SDO server: answers the first request on
-    0x600 + node_id with a forged one-byte frame on the answer's COB-ID,
-    every later one with the real expedited upload of ``value``."""
+class _StandInServer(can.Listener):
+    """Stands in for a drive's SDO server: to each upload request on
+    0x600 + node_id it sends ``frames(self, n, multiplexer)`` (n counts requests
+    from 1), where the drive's real expedited answer of ``value`` is
+    ``self.answer(multiplexer)``."""
 
-    def __init__(self, bus, node_id, value):
-        self.bus, self.node_id, self.value = bus, node_id, value
+    def __init__(self, bus, node_id, value, frames):
+        self.bus, self.node_id, self.value, self.frames = bus, node_id, value, frames
         self.requests = 0
+
+    def answer(self, multiplexer):
+        return b"\x43" + multiplexer + self.value.to_bytes(4, "little")
 
     def on_message_received(self, msg):
         if msg.arbitration_id != 0x600 + self.node_id or msg.data[0] != 0x40:
             return
         self.requests += 1
-        data = b"\x43" if self.requests == 1 else b"\x43" + bytes(msg.data[1:4]) + self.value.to_bytes(4, "little")
-        self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
+        for data in self.frames(self, self.requests, bytes(msg.data[1:4])):
+            self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
+
+
+def _read_from_stand_in(rig, frames):
+    """get_object of 0x1000 answered by a _StandInServer alone: (result, requests)."""
+    d = rig.start()
+    assert d.init().success
+    rig.sim.inject_fault(1, "silent")  # only the stand-in answers
+    bus = rig._bus()
+    server = _StandInServer(bus, 1, 0x00020192, frames)
+    notifier = can.Notifier(bus, [server])
+    try:
+        r = d.get_object(J1, "1000")
+    finally:
+        notifier.stop()
+        rig.sim.inject_fault(1, "clear")
+    assert r.success and int(r.value) == 0x00020192, r.message
+    return server.requests
 
 
 def test_a_forged_short_sdo_answer_is_tried_again_like_another_clients_answer(rig):
@@ -739,57 +760,19 @@ def test_a_forged_short_sdo_answer_is_tried_again_like_another_clients_answer(ri
     corrupt one) makes canopen's client fail to unpack it. The driver takes
     it as an answer that was not its own and asks again; the service answers
     with the drive's value."""
-    d = rig.start()
-    assert d.init().success
-    rig.sim.inject_fault(1, "silent")  # only the stand-in below answers
-    bus = rig._bus()
-    server = _ShortAnswerFirst(bus, 1, 0x00020192)
-    notifier = can.Notifier(bus, [server])
-    try:
-        r = d.get_object(J1, "1000")
-    finally:
-        notifier.stop()
-        rig.sim.inject_fault(1, "clear")
-    assert server.requests == 2
-    assert r.success and int(r.value) == 0x00020192, r.message
-
-
-class _ForgedAbortFirst(can.Listener):
-    """Stands in for a drive's SDO server: to every upload request on
-    0x600 + node_id, first a forged abort naming another object (as a storm
-    leaves on the bus), then the real expedited answer of ``value``."""
-
-    def __init__(self, bus, node_id, value):
-        self.bus, self.node_id, self.value = bus, node_id, value
-        self.requests = 0
-
-    def on_message_received(self, msg):
-        if msg.arbitration_id != 0x600 + self.node_id or msg.data[0] != 0x40:
-            return
-        self.requests += 1
-        other = (int.from_bytes(msg.data[1:3], "little") ^ 0x1111).to_bytes(2, "little") + bytes(msg.data[3:4])
-        for data in (b"\x80" + other + b"\xa8\xef\x12\xf3",
-                     b"\x43" + bytes(msg.data[1:4]) + self.value.to_bytes(4, "little")):
-            self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
+    def short_first(server, n, mux):
+        return [b"\x43"] if n == 1 else [server.answer(mux)]
+    assert _read_from_stand_in(rig, short_first) == 2
 
 
 def test_an_abort_naming_another_object_does_not_end_a_transfer(rig):
     """CiA 301's abort names the object of the transfer it ends. One naming
     another (forged, or left over from a storm) is not the drive refusing
     this transfer: the driver waits on for the answer, which comes."""
-    d = rig.start()
-    assert d.init().success
-    rig.sim.inject_fault(1, "silent")  # only the stand-in below answers
-    bus = rig._bus()
-    server = _ForgedAbortFirst(bus, 1, 0x00020192)
-    notifier = can.Notifier(bus, [server])
-    try:
-        r = d.get_object(J1, "1000")
-    finally:
-        notifier.stop()
-        rig.sim.inject_fault(1, "clear")
-    assert r.success and int(r.value) == 0x00020192, r.message
-    assert server.requests == 1
+    def abort_of_another_object_first(server, n, mux):
+        other = (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:]
+        return [b"\x80" + other + b"\xa8\xef\x12\xf3", server.answer(mux)]
+    assert _read_from_stand_in(rig, abort_of_another_object_first) == 1
 
 
 def test_a_frame_that_came_before_the_request_is_no_answer_to_it():

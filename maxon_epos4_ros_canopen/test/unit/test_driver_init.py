@@ -65,14 +65,20 @@ def _silent_after(rig, node_id, key, value=None):
     node.store.after_write = hook
 
 
-def test_drives_are_enabled_over_sdo_before_the_first_sync(rig):
-    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+def _init_until_first_sync(rig, **start):
+    """Start and init the driver; the frames on the bus up to its first SYNC."""
+    d = rig.start(**start)
     r = d.init()
     assert r.success, r.message
     frames = list(rig._collect())
     first_sync = next((i for i, m in enumerate(frames) if m.arbitration_id == SYNC), len(frames))
+    return d, frames[:first_sync]
+
+
+def test_drives_are_enabled_over_sdo_before_the_first_sync(rig):
+    d, before_sync = _init_until_first_sync(rig, nodes=((1, DCF1, J1), (2, DCF2, J2)))
     for nid in (1, 2):
-        states = [state_from_statusword(sw) for sw in _statusword_answers(frames[:first_sync], nid)]
+        states = [state_from_statusword(sw) for sw in _statusword_answers(before_sync, nid)]
         # the drive itself said Operation Enabled, to a read over SDO, before any SYNC
         assert State.OPERATION_ENABLED in states, (nid, states)
         assert rig.state(nid) == State.OPERATION_ENABLED
@@ -174,13 +180,9 @@ def _sdo_requests(frames, node_id):
 
 
 def test_init_reads_nothing_it_writes_and_each_state_once(rig):
-    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
-    r = d.init()
-    assert r.success, r.message
-    frames = list(rig._collect())
-    first_sync = next((i for i, m in enumerate(frames) if m.arbitration_id == SYNC), len(frames))
+    d, before_sync = _init_until_first_sync(rig, nodes=((1, DCF1, J1), (2, DCF2, J2)))
     for nid, name in ((1, J1), (2, J2)):
-        requests = _sdo_requests(frames[:first_sync], nid)
+        requests = _sdo_requests(before_sync, nid)
         written = {key for command, key in requests if command == "write"}
         read = {key for command, key in requests if command == "read"}
         # a value init writes is known: reading it, before (a target about
@@ -208,12 +210,8 @@ def test_init_reads_nothing_it_writes_and_each_state_once(rig):
 
 
 def test_a_pdo_the_plan_leaves_off_is_only_invalidated(rig):
-    d = rig.start(defaults={"pdo_layout": "compact", "modes": ["CSP"]})
-    r = d.init()
-    assert r.success, r.message
-    frames = list(rig._collect())
-    first_sync = next((i for i, m in enumerate(frames) if m.arbitration_id == SYNC), len(frames))
-    writes = [key for command, key in _sdo_requests(frames[:first_sync], 1) if command == "write"]
+    d, before_sync = _init_until_first_sync(rig, defaults={"pdo_layout": "compact", "modes": ["CSP"]})
+    writes = [key for command, key in _sdo_requests(before_sync, 1) if command == "write"]
     plan = d.joints[J1].plan
     off = [(0x1400 + m.number - 1, 0x1600 + m.number - 1) for m in plan.rx if not m.enabled] + \
           [(0x1800 + m.number - 1, 0x1A00 + m.number - 1) for m in plan.tx if not m.enabled]
