@@ -915,11 +915,11 @@ class Driver:
         return int(self._upload(name, POSITION_ACTUAL))
 
     # ============================================================== init
-    def _configure(self, name: str, reset: bool = True, enabling: bool = False) -> Binding:
+    def _configure(self, name: str, reset: bool = True, hold: bool = True) -> Binding:
         """NMT reset (init) or enter pre-operational (recover: a reset would
         lose the drive's position counter), then everything the plan says,
-        over SDO. ``enabling``: ``_enable`` follows, and sets the controlword
-        and the position the RxPDOs start with itself."""
+        over SDO. ``hold``: see ``_read_initial`` (init's ``_enable`` sets
+        what it leaves out)."""
         node = self._nodes[name]
         nid = node.cfg.node_id
         if reset:
@@ -939,7 +939,7 @@ class Driver:
             step = "writing the PDO mapping"
             self._write_pdos(name)
             step = "reading the initial values"
-            return self._read_initial(name, hold=not enabling)
+            return self._read_initial(name, hold)
         except SdoAbortedError as e:
             raise _InitError("%s (node %d): %s failed: %s" % (name, nid, step, e)) from None
         except SdoCommunicationError as e:
@@ -1126,7 +1126,7 @@ class Driver:
     def _prepare(self, name: str) -> Tuple[Binding, int]:
         """One node's configuration (reset, parameters, PDOs, initial values)
         and its homing method."""
-        binding = self._configure(name, enabling=True)
+        binding = self._configure(name, hold=False)
         if HOMING_METHOD.index not in self._nodes[name].od:
             return binding, 0
         try:
