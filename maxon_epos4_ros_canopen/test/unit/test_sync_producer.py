@@ -1,21 +1,27 @@
 """SyncProducer's periodic path on python-can's virtual bus (no broadcast
 manager there: the thread fallback), the frames' counter sequence, and the
-schedule a cycle can be paced by."""
+schedule a cycle can be paced by; the master's periodic senders through a
+bus that fails for a while."""
 import os
+import threading
 import time
 
 import can
 import pytest
 
-from maxon_epos4_ros_canopen.driver.bus import SYNC_COB_ID, SyncProducer
+from maxon_epos4_ros_canopen.config import HeartbeatConfig
+from maxon_epos4_ros_canopen.driver.bus import SYNC_COB_ID, HeartbeatProducer, SyncProducer
+from test_driver import until
+
+MASTER_HEARTBEAT = 0x77F
 
 
-def collect(bus, n, timeout=10.0):
+def collect(bus, n, timeout=10.0, cob_id=SYNC_COB_ID):
     frames = []
     end = time.monotonic() + timeout
     while len(frames) < n and time.monotonic() < end:
         msg = bus.recv(0.2)
-        if msg is not None and msg.arbitration_id == SYNC_COB_ID:
+        if msg is not None and msg.arbitration_id == cob_id:
             frames.append(msg)
     return frames
 
@@ -148,3 +154,41 @@ def test_socketcan_without_can_bcm_falls_back_to_the_thread(buses, monkeypatch):
         sync.stop()
     assert not sync.kernel_timed
     assert [bytes(f.data) for f in frames] == [b"\x01", b"\x02", b"\x01"]
+
+
+@pytest.mark.parametrize("producer", ["sync", "heartbeat"])
+def test_a_bus_that_refuses_frames_for_a_while_does_not_end_the_sender(buses, monkeypatch, producer):
+    """The bus refuses every frame for a while (down, or its transmit queue
+    full): the sender thread counts the errors and goes on, and the frames
+    are on the bus again as soon as it takes them. A heartbeat that ended
+    at the first lost frame would let every drive's consumer stop its drive."""
+    master, sniffer = buses
+    thread_exceptions = []
+    monkeypatch.setattr(threading, "excepthook", thread_exceptions.append)
+    down = threading.Event()
+    down.set()
+    refused = []
+    real_send = master.send
+
+    def send(msg, timeout=None):
+        if down.is_set():
+            refused.append(msg)
+            raise can.CanOperationError("Failed to transmit: Network is down", 100)
+        return real_send(msg, timeout)
+    monkeypatch.setattr(master, "send", send)
+    if producer == "sync":
+        sender, cob_id = SyncProducer(master, overflow=0), SYNC_COB_ID
+        sender.start(0.005)
+    else:
+        sender, cob_id = HeartbeatProducer(master, HeartbeatConfig(200.0, MASTER_HEARTBEAT, b"\x05")), MASTER_HEARTBEAT
+        sender.start()
+    try:
+        assert until(lambda: len(refused) >= 3)
+        assert sniffer.recv(0) is None
+        down.clear()
+        frames = collect(sniffer, 3, cob_id=cob_id)
+    finally:
+        sender.stop()
+    assert len(frames) == 3
+    assert thread_exceptions == []
+    assert sender.send_errors.count >= 3 and isinstance(sender.send_errors.last, can.CanOperationError)

@@ -7,8 +7,9 @@ when a received frame reached this host."""
 from __future__ import annotations
 
 import logging
+import threading
 import time
-from typing import List, Optional, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 import can
 
@@ -59,6 +60,7 @@ class SyncProducer:
         self._msg = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False,
                                 data=b"\x00" if overflow else b"")
         self._task: Optional[can.broadcastmanager.CyclicSendTaskABC] = None
+        self.send_errors: Optional[SendErrors] = None  # the thread's, when the thread sends
 
     def _advance(self, msg: can.Message) -> None:
         self.sent += 1
@@ -83,23 +85,9 @@ class SyncProducer:
         if not period_s > 0:
             raise ValueError("SYNC period must be > 0, not %r" % (period_s,))
         self.stop()
-        msgs = self.frames()
-        task = None
-        if kernel and is_socketcan(self.bus):
-            try:
-                # no modifier callback: python-can then uses BCM, which sends
-                # the first frame one period after setup
-                task = self.bus.send_periodic(msgs, period_s, store_task=False)
-                self.first_at = time.monotonic() + period_s
-                self.kernel_timed = True
-            except (OSError, can.CanError) as e:  # can-bcm not loaded
-                log.warning("SYNC: no kernel timer on %s (%s): sending from a thread", self.bus.channel_info, e)
-        if task is None:
-            self.kernel_timed = False
-            self.first_at = time.monotonic()
-            # python-can's generic sender thread (what send_periodic falls
-            # back to); the thread sends the first frame at once
-            task = can.BusABC._send_periodic_internal(self.bus, msgs, period_s)
+        task, self.send_errors = start_periodic(self.bus, self.frames(), period_s, "SYNC", kernel)
+        self.kernel_timed = self.send_errors is None
+        self.first_at = time.monotonic() + (period_s if self.kernel_timed else 0.0)
         self.period = period_s
         self._task = task
 
@@ -128,6 +116,51 @@ class SyncProducer:
         self.first_at = None
 
 
+class SendErrors:
+    """The bus a python-can sender thread sends through: a send error (bus
+    down, transmit queue full) is counted here, not raised. python-can's
+    thread ends at the first error that reaches it, so one lost frame
+    would end the master's heartbeat for good, and every drive's consumer
+    would then stop its drive; the thread goes on and the frames are back
+    as soon as the bus is."""
+
+    def __init__(self, bus: can.BusABC) -> None:
+        self.bus = bus
+        self.count = 0
+        self.last: Optional[BaseException] = None
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        try:
+            self.bus.send(msg, timeout)
+        except (can.CanError, OSError) as e:
+            self.count += 1
+            self.last = e
+
+
+def start_periodic(bus: can.BusABC, msgs: Sequence[can.Message], period_s: float, what: str,
+                   kernel: bool = True, store_task: bool = False
+                   ) -> Tuple[can.broadcastmanager.CyclicSendTaskABC, Optional[SendErrors]]:
+    """msgs sent in turn every period_s, the task and its SendErrors: the
+    broadcast manager sends them on SocketCAN (errors None: the kernel's
+    timer goes on whatever a send meets; store_task: the bus's shutdown
+    ends the task), python-can's sender thread everywhere else, through
+    SendErrors (a kernel without can-bcm too, with a warning naming
+    ``what``); kernel=False forces the thread."""
+    if kernel and is_socketcan(bus):
+        try:
+            # no modifier callback: python-can then uses BCM, which sends
+            # the first frame one period after setup
+            return bus.send_periodic(list(msgs), period_s, store_task=store_task), None
+        except (OSError, can.CanError) as e:  # can-bcm not loaded
+            log.warning("%s: no kernel timer on %s (%s): sending from a thread", what, bus.channel_info, e)
+    errors = SendErrors(bus)
+    # on_error: whatever SendErrors does not catch, python-can logs, and
+    # the thread goes on; its first frame goes out at once
+    task = can.broadcastmanager.ThreadBasedCyclicSendTask(errors, threading.Lock(), list(msgs), period_s,
+                                                          on_error=lambda e: True)
+    return task, errors
+
+
 def is_socketcan(bus: can.BusABC) -> bool:
     """A python-can SocketCAN bus (kernel timers and filters available)."""
     try:
@@ -145,10 +178,12 @@ class HeartbeatProducer:
         self.period_s = 1.0 / cfg.rate
         self._msg = can.Message(arbitration_id=cfg.can_id, data=cfg.data, is_extended_id=cfg.extended)
         self._task: Optional[can.broadcastmanager.CyclicSendTaskABC] = None
+        self.send_errors: Optional[SendErrors] = None  # the thread's, when the thread sends
 
     def start(self) -> None:
         if self._task is None:
-            self._task = self.bus.send_periodic(self._msg, self.period_s)
+            self._task, self.send_errors = start_periodic(self.bus, [self._msg], self.period_s, "heartbeat",
+                                                          store_task=True)
 
     def stop(self) -> None:
         if self._task is not None:

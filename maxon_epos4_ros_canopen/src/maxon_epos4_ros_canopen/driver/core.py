@@ -1368,8 +1368,8 @@ class Driver:
 
     def _recover(self) -> Result:
         names = list(self._nodes)
-        # python-can's threaded periodic senders end on a send error (bus
-        # down): restart them, they are cheap to restart.
+        # The periodic senders again, from their first frame: cheap, and
+        # certain to run afterwards whatever the bus did while it failed.
         if self._heartbeat is not None:
             self._heartbeat.stop()
             self._heartbeat.start()
