@@ -27,11 +27,11 @@ SEED_UNITS = {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_devi
               "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0"}
 
 
-# For tests about something else than master loss: the drive's consumer of
-# the master's heartbeat (node 0x7F) at 2000 ms instead of the 150 ms the
-# rig's 20 Hz heartbeat gives. A busy process on a loaded host can hold the
-# heartbeat thread (python-can's, on the virtual bus) from the GIL longer
-# than 150 ms, and the drive would then rightly stop.
+# The rig's drives watch the master's heartbeat (node 0x7F) for 2000 ms, not
+# the 150 ms init derives from the rig's 20 Hz heartbeat: a busy process on
+# a loaded host can hold the heartbeat thread (python-can's, on the virtual
+# bus) from the GIL longer than 150 ms, and the drive would then rightly
+# stop. A test of master loss asks for the derived one (master_consumer=None).
 GENEROUS_MASTER_CONSUMER = {"1016sub1": "0x007F07D0"}
 
 
@@ -61,7 +61,7 @@ class Rig:
         return bus
 
     def start(self, nodes=((1, DCF1, J1),), defaults=None, sim_dcfs=None, hard_stop=None,
-              **top):
+              master_consumer=GENEROUS_MASTER_CONSUMER, **top):
         sim_nodes = []
         for i, (nid, dcf, _) in enumerate(nodes):
             sim_dcf = sim_dcfs[i] if sim_dcfs else dcf
@@ -73,7 +73,11 @@ class Rig:
                   "nodes": {"node%d" % nid: {"id": nid, "name": name, "eds_file": dcf}
                             for nid, dcf, name in nodes},
                   "defaults": dict(SEED_UNITS, switching_state=2)}
-        params["defaults"].update(defaults or {})
+        if "heartbeat" in top and top["heartbeat"] is None:
+            master_consumer = None  # no master heartbeat: init derives no consumer either
+        defaults = dict(defaults or {})
+        defaults["dcf_overlay"] = dict(master_consumer or {}, **defaults.get("dcf_overlay", {}))
+        params["defaults"].update(defaults)
         params.update(top)
         # Generous waits: they only bound how long a failure takes on a loaded host.
         self.driver = Driver(load_config(params, "test"), homing_timeout=30.0, state_timeout=10.0)
@@ -316,7 +320,7 @@ def test_shutdown_disables_over_sdo_a_drive_that_left_operational_by_itself(rig)
     quick-stopped and went pre-operational (0x1029), where it takes no PDO
     and sends none. Shutdown brings it to Switch On Disabled over SDO and
     releases its consumer, rather than wait on PDOs that never come."""
-    d = rig.start()
+    d = rig.start(master_consumer=None)
     assert d.init().success
     assert d.switch_mode([J1], 3).success
     assert d.set_command(J1, "velocity", 500.0).success
@@ -669,6 +673,20 @@ def test_a_boot_up_after_another_error_is_still_reported_as_a_reboot(rig):
     assert "position reference is lost" in r.message
 
 
+def test_recover_names_the_drive_that_did_not_answer(rig):
+    """A drive whose SDO answers come later than all three attempts: recover
+    fails, and says which drive, not only that an answer was missing."""
+    d = ppm_ready(rig)
+    d.sdo_timeout = 0.1  # three attempts: 0.1 + 0.2 + 0.3 s
+    rig.sim.inject_fault(1, "sdo_delay", duration=2.0)
+    try:
+        r = d.recover()
+    finally:
+        rig.sim.inject_fault(1, "clear")
+    assert not r.success
+    assert r.message.startswith("recover: %s (node 1):" % J1) and "No SDO response" in r.message, r.message
+
+
 def test_sdo_answers_later_than_the_timeout_still_get_through(rig):
     """A host that stalls delays a drive's SDO answer past three times sdo_timeout (1 s):
     each retry waits longer, so services still answer; the cycle (PDOs) is
@@ -783,6 +801,32 @@ def test_an_abort_naming_another_object_does_not_end_a_transfer(rig):
         other = (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:]
         return [b"\x80" + other + b"\xa8\xef\x12\xf3", server.answer(mux)]
     assert _read_from_stand_in(rig, abort_of_another_object_first) == 1
+
+
+def test_a_transfer_that_got_only_frames_it_could_not_take_says_so(rig):
+    """Frames came on the answer's COB-ID, none of them an answer (here
+    aborts of another object, each time): the service's "no answer" says
+    how many and why the last was dropped, so a user can tell a silent
+    drive from a disturbed channel."""
+    d = rig.start()
+    assert d.init().success
+    d.sdo_timeout = 0.1
+    rig.sim.inject_fault(1, "silent")  # only the stand-in answers
+    bus = rig._bus()
+
+    def abort_of_another_object(server, n, mux):
+        return [b"\x80" + (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:]
+                + b"\x00\x00\x02\x06"]
+    server = _StandInServer(bus, 1, 0, abort_of_another_object)
+    notifier = can.Notifier(bus, [server])
+    try:
+        r = d.get_object(J1, "1000")
+    finally:
+        notifier.stop()
+        rig.sim.inject_fault(1, "clear")
+    assert not r.success
+    assert "no answer" in r.message and "%d frame(s) on 0x581 taken for no answer" % server.requests in r.message
+    assert "an abort of another object" in r.message, r.message
 
 
 def test_a_frame_that_came_before_the_request_is_no_answer_to_it():

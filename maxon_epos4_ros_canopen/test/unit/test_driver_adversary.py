@@ -11,7 +11,7 @@ import can
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
-from test_driver import DCF1, DCF2, GENEROUS_MASTER_CONSUMER, J1, J2, Rig, ppm_ready, until
+from test_driver import DCF1, DCF2, J1, J2, Rig, ppm_ready, until
 
 
 @pytest.fixture
@@ -203,8 +203,7 @@ def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
 
 
 def test_eight_threads_for_15_seconds_lose_no_command(rig):
-    # eight busy threads: this test is about commands between threads
-    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)), defaults={"dcf_overlay": GENEROUS_MASTER_CONSUMER})
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
     assert d.init().success and d.switch_mode([J1, J2], 3).success
     order_lock = threading.Lock()
     last = {}

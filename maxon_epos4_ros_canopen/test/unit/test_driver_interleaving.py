@@ -13,7 +13,7 @@ import threading
 import pytest
 
 from maxon_epos4_ros_canopen.driver import core
-from test_driver import GENEROUS_MASTER_CONSUMER, J1, Rig, ppm_ready, until
+from test_driver import J1, Rig, ppm_ready, until
 
 DRIVER_DIR = os.path.dirname(os.path.abspath(core.__file__))
 
@@ -80,11 +80,8 @@ def stepped(request):
     threading.settrace(stepper.global_trace)   # the cycle thread starts at init
     rig = Rig("interleave_" + request.node.name)
     try:
-        # a short cycle: the handshake after each interleaving takes a few;
-        # the traced cycle on a loaded host is slow enough to starve the
-        # master's heartbeat thread
-        d = ppm_ready(rig, sync={"interval_ms": 5, "overflow": 0},
-                      defaults={"dcf_overlay": GENEROUS_MASTER_CONSUMER})
+        # a short cycle: the handshake after each interleaving takes a few
+        d = ppm_ready(rig, sync={"interval_ms": 5, "overflow": 0})
     finally:
         threading.settrace(None)
     yield rig, d, stepper

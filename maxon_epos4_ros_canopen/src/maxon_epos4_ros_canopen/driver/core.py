@@ -333,7 +333,7 @@ class Driver:
         self.initialized = False
         self.bus: Optional[can.BusABC] = None
         self.network: Optional[canopen.Network] = None
-        self._sdo: Mapping[str, SdoClient] = MappingProxyType({})
+        self._sdo: Mapping[str, GuardedSdoClient] = MappingProxyType({})
         self._receiver: Optional[TpdoReceiver] = None
         self._boot: Dict[int, threading.Event] = {}
         self.sync: Optional[SyncProducer] = None
@@ -877,6 +877,7 @@ class Driver:
         clients polling the drive do not meet again at once."""
         with self._sdo_locks[name]:
             client = self._sdo[name]
+            dropped = client.dropped
             late = 0
             try:
                 for attempt in range(_SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS):
@@ -896,6 +897,12 @@ class Driver:
                         if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
                             if isinstance(e, struct.error):
                                 raise SdoCommunicationError("malformed SDO answer (%s)" % e) from e
+                            if client.dropped > dropped:
+                                # what came, and why it was no answer, says
+                                # whether the drive or this host failed
+                                raise SdoCommunicationError("%s; %d frame(s) on 0x%03X taken for no answer, the last %s"
+                                                            % (e, client.dropped - dropped, client.tx_cobid,
+                                                               client.last_dropped)) from e
                             raise
                         log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
                         if foreign:
@@ -1416,7 +1423,13 @@ class Driver:
                 # that left OPERATIONAL by itself (its communication error
                 # behaviour, 0x1029) is started again; harmless otherwise
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
-        clear = [_ClearError(name, self._position(name), int(self._upload(name, STATUSWORD))) for name in names]
+        clear = []
+        for name in names:
+            try:
+                clear.append(_ClearError(name, self._position(name), int(self._upload(name, STATUSWORD))))
+            except (SdoAbortedError, SdoCommunicationError) as e:
+                return fail("recover: %s (node %d): reading its position and statusword: %s"
+                            % (name, self._nodes[name].cfg.node_id, e))
         err = self._go(names, State.OPERATION_ENABLED, fault_reset=True, together=clear)
         if err:
             return fail("recover: " + err)

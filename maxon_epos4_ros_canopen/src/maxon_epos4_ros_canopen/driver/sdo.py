@@ -39,6 +39,7 @@ class GuardedSdoClient(SdoClient):
         self._sent_at = 0.0                  # wall clock, as frame timestamps
         self._multiplexer: Optional[bytes] = None
         self.dropped = 0
+        self.last_dropped = ""               # why the last of them was no answer
 
     def send_request(self, request: bytes) -> None:
         command = request[0] >> 5
@@ -55,10 +56,14 @@ class GuardedSdoClient(SdoClient):
         # a timestamp far from the wall clock is another clock's (an
         # adapter's own): it says nothing of when the frame came
         if 0.0 <= lag <= MAX_RECEIVE_LAG and timestamp < self._sent_at:
-            self.dropped += 1
+            self._drop("%s stamped %.3f s before the request" % (payload.hex(), self._sent_at - timestamp))
             return
         if len(payload) == 8 and payload[0] == _ABORT and self._multiplexer is not None \
                 and payload[1:4] != self._multiplexer:
-            self.dropped += 1
+            self._drop("%s, an abort of another object" % payload.hex())
             return
         super().on_response(can_id, data, timestamp)
+
+    def _drop(self, why: str) -> None:
+        self.dropped += 1
+        self.last_dropped = why
