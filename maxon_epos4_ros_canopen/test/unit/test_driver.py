@@ -766,21 +766,33 @@ class _StandInServer(can.Listener):
             self.bus.send(can.Message(arbitration_id=0x580 + self.node_id, data=data, is_extended_id=False))
 
 
-def _read_from_stand_in(rig, frames):
+def _get_object_from_stand_in(rig, frames, sdo_timeout=None):
     """get_object of 0x1000 answered by a _StandInServer alone: (result, requests)."""
     d = rig.start()
     assert d.init().success
+    if sdo_timeout is not None:
+        d.sdo_timeout = sdo_timeout
     rig.sim.inject_fault(1, "silent")  # only the stand-in answers
     bus = rig._bus()
     server = _StandInServer(bus, 1, 0x00020192, frames)
     notifier = can.Notifier(bus, [server])
     try:
-        r = d.get_object(J1, "1000")
+        return d.get_object(J1, "1000"), server.requests
     finally:
         notifier.stop()
         rig.sim.inject_fault(1, "clear")
+
+
+def _read_from_stand_in(rig, frames):
+    """The value the stand-in gives, read by get_object: the requests it took."""
+    r, requests = _get_object_from_stand_in(rig, frames)
     assert r.success and int(r.value) == 0x00020192, r.message
-    return server.requests
+    return requests
+
+
+def _abort_of_another_object(mux):
+    """An abort (code 0x06020000) naming another object than ``mux``."""
+    return b"\x80" + (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:] + b"\x00\x00\x02\x06"
 
 
 def test_a_forged_short_sdo_answer_is_tried_again_like_another_clients_answer(rig):
@@ -798,8 +810,7 @@ def test_an_abort_naming_another_object_does_not_end_a_transfer(rig):
     another (forged, or left over from a storm) is not the drive refusing
     this transfer: the driver waits on for the answer, which comes."""
     def abort_of_another_object_first(server, n, mux):
-        other = (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:]
-        return [b"\x80" + other + b"\xa8\xef\x12\xf3", server.answer(mux)]
+        return [_abort_of_another_object(mux), server.answer(mux)]
     assert _read_from_stand_in(rig, abort_of_another_object_first) == 1
 
 
@@ -808,24 +819,10 @@ def test_a_transfer_that_got_only_frames_it_could_not_take_says_so(rig):
     aborts of another object, each time): the service's "no answer" says
     how many and why the last was dropped, so a user can tell a silent
     drive from a disturbed channel."""
-    d = rig.start()
-    assert d.init().success
-    d.sdo_timeout = 0.1
-    rig.sim.inject_fault(1, "silent")  # only the stand-in answers
-    bus = rig._bus()
-
-    def abort_of_another_object(server, n, mux):
-        return [b"\x80" + (int.from_bytes(mux[:2], "little") ^ 0x1111).to_bytes(2, "little") + mux[2:]
-                + b"\x00\x00\x02\x06"]
-    server = _StandInServer(bus, 1, 0, abort_of_another_object)
-    notifier = can.Notifier(bus, [server])
-    try:
-        r = d.get_object(J1, "1000")
-    finally:
-        notifier.stop()
-        rig.sim.inject_fault(1, "clear")
+    r, requests = _get_object_from_stand_in(rig, lambda server, n, mux: [_abort_of_another_object(mux)],
+                                            sdo_timeout=0.1)
     assert not r.success
-    assert "no answer" in r.message and "%d frame(s) on 0x581 taken for no answer" % server.requests in r.message
+    assert "no answer" in r.message and "%d frame(s) on 0x581 taken for no answer" % requests in r.message
     assert "an abort of another object" in r.message, r.message
 
 
