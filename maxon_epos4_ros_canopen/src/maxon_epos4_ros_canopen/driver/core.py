@@ -877,7 +877,7 @@ class Driver:
         clients polling the drive do not meet again at once."""
         with self._sdo_locks[name]:
             client = self._sdo[name]
-            dropped = client.dropped
+            tally = client.tally()
             late = 0
             try:
                 for attempt in range(_SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS):
@@ -897,14 +897,13 @@ class Driver:
                         if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
                             if isinstance(e, struct.error):
                                 raise SdoCommunicationError("malformed SDO answer (%s)" % e) from e
-                            if client.dropped > dropped:
-                                # what came, and why it was no answer, says
-                                # whether the drive or this host failed
-                                raise SdoCommunicationError("%s; %d frame(s) on 0x%03X taken for no answer, the last %s"
-                                                            % (e, client.dropped - dropped, client.tx_cobid,
-                                                               client.last_dropped)) from e
-                            raise
-                        log.warning("%s: SDO transfer disturbed (%s): trying again", name, e)
+                            if foreign:
+                                raise
+                            # what came, and why it was no answer, tells the
+                            # drive's silence from this host's trouble
+                            raise SdoCommunicationError("%s; %s" % (e, client.since(tally))) from e
+                        log.warning("%s: SDO transfer disturbed (%s%s): trying again",
+                                    name, e, "" if foreign else "; " + client.since(tally))
                         if foreign:
                             time.sleep(random.uniform(0.005, 0.05))
             finally:

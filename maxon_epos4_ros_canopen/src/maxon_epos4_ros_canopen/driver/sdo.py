@@ -17,7 +17,7 @@ tries again (``Driver._sdo_transfer``).
 from __future__ import annotations
 
 import time
-from typing import Any, Optional
+from typing import Any, Optional, Tuple
 
 from canopen.sdo import SdoClient
 
@@ -38,7 +38,8 @@ class GuardedSdoClient(SdoClient):
         super().__init__(rx_cobid, tx_cobid, od)
         self._sent_at = 0.0                  # wall clock, as frame timestamps
         self._multiplexer: Optional[bytes] = None
-        self.dropped = 0
+        self.frames = 0                      # every frame on the answer COB-ID
+        self.dropped = 0                     # those taken for no answer
         self.last_dropped = ""               # why the last of them was no answer
 
     def send_request(self, request: bytes) -> None:
@@ -50,7 +51,24 @@ class GuardedSdoClient(SdoClient):
         self._sent_at = time.time()
         super().send_request(request)
 
+    def tally(self) -> Tuple[int, int]:
+        """Frames seen and dropped so far, for ``since``."""
+        return self.frames, self.dropped
+
+    def since(self, tally: Tuple[int, int]) -> str:
+        """What came on the answer COB-ID since ``tally`` was taken: whether
+        a missing answer is the drive's silence or frames this client could
+        not take."""
+        frames, dropped = self.frames - tally[0], self.dropped - tally[1]
+        if not frames:
+            return "no frame on 0x%03X since the transfer began" % self.tx_cobid
+        text = "%d frame(s) on 0x%03X since the transfer began" % (frames, self.tx_cobid)
+        if dropped:
+            text += ", %d taken for no answer (the last: %s)" % (dropped, self.last_dropped)
+        return text
+
     def on_response(self, can_id: int, data: Any, timestamp: float) -> None:
+        self.frames += 1
         payload = bytes(data)
         lag = time.time() - timestamp
         # a timestamp far from the wall clock is another clock's (an
