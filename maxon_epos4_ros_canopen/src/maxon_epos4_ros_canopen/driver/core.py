@@ -1374,8 +1374,8 @@ class Driver:
 
     def _recover(self) -> Result:
         names = list(self._nodes)
-        # The periodic senders again, from their first frame: cheap, and
-        # certain to run afterwards whatever the bus did while it failed.
+        # Restart the periodic senders: cheap, and afterwards they surely
+        # run, whatever the bus did to them while it failed.
         if self._heartbeat is not None:
             self._heartbeat.stop()
             self._heartbeat.start()
