@@ -8,9 +8,10 @@ is any adapter python-can supports: ``pcan:PCAN_USBBUS1``, ``ixxat:0``,
 from __future__ import annotations
 
 import errno
+import math
 import socket
 import time
-from typing import Optional, Tuple
+from typing import Callable, Optional, Tuple
 
 import can
 
@@ -26,14 +27,35 @@ DEFAULT_BITRATE = 1000000  # maxon's recommendation for EPOS4 networks
 MAX_RECEIVE_LAG = 5.0
 
 
-def arrival_time(timestamp: float, read_at: float) -> float:
-    """When a frame read at ``read_at`` (monotonic, or any clock in seconds)
-    reached the host. The kernel stamps each frame as it arrives
-    (python-can's ``timestamp``, wall clock on SocketCAN and the virtual
-    bus); its distance from the wall clock when the frame is read is how
-    long it waited in the socket."""
-    lag = time.time() - timestamp
-    return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
+class ArrivalClock:
+    """When a received frame reached this host, on ``clock`` (monotonic).
+
+    The kernel stamps each frame as it arrives (python-can's ``timestamp``,
+    wall clock on SocketCAN and the virtual bus); its distance from the wall
+    clock when the frame is read is how long it waited in the socket.
+
+    The offset between the wall clock and the monotonic one is read once a
+    second, not for each frame: where reading a clock is a system call
+    (user-mode Linux, about 80 us: more than the rest of a frame's handling)
+    a busy bus would spend the reader's time on the clock and fall behind.
+    Reading it again each second follows a wall clock that was stepped.
+    One reader thread owns an instance."""
+
+    REFRESH_S = 1.0
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self._taken = -math.inf  # when the offset was read, on clock
+        self._offset = 0.0       # wall clock minus clock
+
+    def arrival(self, timestamp: float, read_at: float) -> float:
+        """When a frame stamped ``timestamp`` and read at ``read_at`` (on
+        clock) reached the host."""
+        if not 0.0 <= read_at - self._taken <= self.REFRESH_S:
+            self._offset = time.time() - self._clock()
+            self._taken = read_at
+        lag = read_at + self._offset - timestamp
+        return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
 
 
 # Receive buffer asked for on a SocketCAN socket: about a second of a full

@@ -2,13 +2,15 @@
 INTERFACE:CHANNEL forms with a bit rate where the adapter takes one."""
 from __future__ import annotations
 
+import time
 import uuid
 from pathlib import Path
 
 import can
 import pytest
 
-from maxon_epos4_ros_canopen.can_device import CanDeviceError, open_device, parse_device
+from maxon_epos4_ros_canopen import can_device
+from maxon_epos4_ros_canopen.can_device import ArrivalClock, CanDeviceError, open_device, parse_device
 from maxon_epos4_ros_canopen.config import ConfigError, load_config
 from maxon_epos4_ros_canopen.driver.bus import open_bus
 
@@ -110,3 +112,36 @@ def test_a_receive_buffer_is_enlarged_to_hold_a_second_of_a_full_bus():
         assert granted >= before
         if os.geteuid() == 0:
             assert granted >= RECEIVE_BUFFER_BYTES
+
+
+def test_arrival_clock_counts_the_time_a_frame_waited_in_the_socket():
+    clock = ArrivalClock()
+    read_at = time.monotonic()
+    assert clock.arrival(time.time() - 0.2, read_at) == pytest.approx(read_at - 0.2, abs=0.01)
+    # a stamp of another clock (an adapter's own) says nothing: read on arrival
+    assert clock.arrival(12.0, read_at) == read_at
+    assert clock.arrival(time.time() + 3.0, read_at) == read_at
+
+
+def test_arrival_clock_reads_the_wall_clock_once_a_second_and_follows_a_step(monkeypatch):
+    """A clock read is a system call on some hosts (user-mode Linux): not
+    one per frame. A wall clock stepped meanwhile is followed at the next
+    refresh."""
+    wall = [1000.0]
+    mono = [50.0]
+    wall_reads = []
+
+    def read_wall():
+        wall_reads.append(wall[0])
+        return wall[0]
+    monkeypatch.setattr(can_device.time, "time", read_wall)
+    clock = ArrivalClock(clock=lambda: mono[0])
+    for i in range(1000):  # frames 0.5 ms apart, each stamped 0.1 s before it is read
+        mono[0] = 50.0 + i * 0.0005
+        wall[0] = 1000.0 + i * 0.0005
+        assert clock.arrival(wall[0] - 0.1, mono[0]) == pytest.approx(mono[0] - 0.1)
+    assert len(wall_reads) == 1
+    wall[0] += 3600.0  # the wall clock stepped an hour ahead; its stamps with it
+    mono[0] += ArrivalClock.REFRESH_S + 0.1
+    assert clock.arrival(wall[0] - 0.1, mono[0]) == pytest.approx(mono[0] - 0.1)
+    assert len(wall_reads) == 2

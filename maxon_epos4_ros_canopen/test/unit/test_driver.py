@@ -745,6 +745,28 @@ def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(rig):
     assert "heartbeat lost" in d.joints[J1].error
 
 
+def test_an_sdo_answer_that_came_in_time_but_was_read_late_is_the_answer(rig):
+    """The drive answered within sdo_timeout, but the driver's notifier,
+    behind on a loaded host, reads the answer later than that. The transfer
+    judges the answer by when it arrived, as the watchdogs judge PDOs: it is
+    the answer, and the request goes out once, with no "trying again"."""
+    d = ppm_ready(rig)
+    d.sdo_timeout = 0.3
+    slow = _SlowReader(3.0, 0.01)
+    d.network.notifier.add_listener(slow)
+    slow.start()
+
+    # the lag the diagnostics show: how long the latest frame read had waited
+    assert until(lambda: d.status()[0]["receive_lag_ms"] > 600, 10.0), "no backlog built up"
+    rig.drain()
+    r = d.get_object(J1, "6083")
+    assert r.success, r.message
+    assert r.value == str(rig.read(0x6083))
+    assert len([f for f in rig.sent(0x601) if f[0] == 0x40]) == 1, rig.sent(0x601)
+    assert slow.done.wait(30.0)
+    assert until(lambda: d.status()[0]["receive_lag_ms"] < 100, 10.0)
+
+
 class _StandInServer(can.Listener):
     """Stands in for a drive's SDO server: to each upload request on
     0x600 + node_id it sends ``frames(self, n, multiplexer)`` (n counts requests

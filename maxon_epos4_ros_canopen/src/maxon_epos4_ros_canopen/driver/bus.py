@@ -7,13 +7,14 @@ when a received frame reached this host."""
 from __future__ import annotations
 
 import logging
+import select
 import threading
 import time
-from typing import List, Optional, Sequence, Tuple
+from typing import Callable, List, Optional, Sequence, Tuple
 
 import can
 
-from ..can_device import arrival_time, open_device
+from ..can_device import ArrivalClock, open_device
 from ..config import BusConfig, HeartbeatConfig
 
 SYNC_COB_ID = 0x080
@@ -191,6 +192,26 @@ class HeartbeatProducer:
             self._task = None
 
 
+def unread_frames(bus: can.BusABC) -> Callable[[], bool]:
+    """Whether frames wait in ``bus``'s receive queue that its reader has not
+    taken yet. python-can has no such question; SocketCAN answers it with a
+    select() that takes nothing, python-can's virtual bus with its queue.
+    Other adapters buffer in their vendor's library, out of sight: there the
+    answer is always no."""
+    sock = getattr(bus, "socket", None)
+    if is_socketcan(bus) and sock is not None:
+        def socket_readable() -> bool:
+            try:
+                return bool(select.select([sock], [], [], 0.0)[0])
+            except (OSError, ValueError):  # closed, or the interface went away
+                return False
+        return socket_readable
+    pending = getattr(bus, "queue", None)
+    if pending is not None and callable(getattr(pending, "empty", None)):
+        return lambda: not pending.empty()
+    return lambda: False
+
+
 class ReceiveClock(can.Listener):
     """When frames reached this host, on the monotonic clock, and how far
     the CAN notifier has read.
@@ -199,17 +220,38 @@ class ReceiveClock(can.Listener):
     with frames waiting in the socket. A watchdog that judged a drive by
     when its frames were read would then take the driver's own stall for
     the drive's silence: each frame counts from when it arrived
-    (``can_device.arrival_time``).
+    (``can_device.ArrivalClock``). An SDO transfer waiting for its answer
+    asks ``unread_before`` the same question.
 
-    ``progress`` is replaced whole by the notifier thread, one immutable
-    tuple: (monotonic time the latest frame was read, when it arrived)."""
+    It is the notifier's first listener: the subscribers the notifier calls
+    after it take the frame's times from ``progress`` instead of reading a
+    clock each. ``progress`` is replaced whole by the notifier thread, one
+    immutable tuple: (monotonic time the latest frame was read, when it
+    arrived)."""
 
-    def __init__(self) -> None:
+    def __init__(self, unread: Callable[[], bool] = lambda: False) -> None:
         now = time.monotonic()
         self.progress: Tuple[float, float] = (now, now)
-
-    arrival = staticmethod(arrival_time)
+        self._unread = unread
+        self._arrival = ArrivalClock()
 
     def on_message_received(self, msg: can.Message) -> None:
         now = time.monotonic()
-        self.progress = (now, self.arrival(msg.timestamp, now))
+        self.progress = (now, self._arrival.arrival(msg.timestamp, now))
+
+    def read_at(self) -> float:
+        """When the frame being handled (the latest) was read."""
+        return self.progress[0]
+
+    def lag(self) -> float:
+        """How long the latest frame read had waited in the receive queue (s)."""
+        read_at, arrived = self.progress
+        return read_at - arrived
+
+    def unread_before(self, t: float) -> bool:
+        """Whether frames that reached this host before monotonic ``t`` may
+        still wait unread: the notifier has read nothing that arrived at
+        ``t`` or later, and the receive queue is not empty. Frames are read
+        in the order they came, so once one that arrived after ``t`` has
+        been read, all those before it have been too."""
+        return self.progress[1] < t and self._unread()

@@ -49,13 +49,13 @@ from ..result import Result, fail, ok
 from ..units import object_variable_name
 from .axis import (SWITCHING_STATE, Axis, AxisSnapshot, Binding, Converter, command_problem, env_for_check,
                    holding_controlword, initial_snapshot)
-from .bus import HeartbeatProducer, ReceiveClock, SyncProducer, is_socketcan, open_bus
+from .bus import HeartbeatProducer, ReceiveClock, SyncProducer, is_socketcan, open_bus, unread_frames
 from .modes import (CONTROLWORD, HOMING, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
                     TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY, VELOCITY_ACTUAL, mode_of, supported_modes_text)
 from .pdo import PdoLayoutError, RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from .plan import (DRIVER_OWNED, HEARTBEAT_CONSUMER_1, HOMING_METHOD, MODE_TARGETS, PRODUCER_HEARTBEAT, RPDO_COMM, RPDO_MAP, TPDO_COMM, TPDO_MAP,
                    NodePlan, plan_node)
-from .sdo import GuardedSdoClient
+from .sdo import GuardedSdoClient, no_answer
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
@@ -536,16 +536,17 @@ class Driver:
             except Exception as e:  # OSError, CanError, ValueError from python-can
                 raise _InitError("cannot open CAN device %r: %s" % (self.config.bus.device, e)) from None
         network = canopen.Network(self.bus)
+        # first, so that every subscriber takes its frame's times from it
+        self._receive_clock = clock = ReceiveClock(unread_frames(self.bus))
+        network.listeners.insert(0, clock)
         network.connect()
         # python-can's notifier ends its reader thread on the first receive
         # error (an interface going down) unless a listener handles it; this
         # one does, so reception resumes when the interface is up again.
         network.notifier.add_listener(_ReceiveErrors(network.notifier))
-        self._receive_clock = clock = ReceiveClock()
-        network.notifier.add_listener(clock)
         self.network = network
         self._receiver = receiver = TpdoReceiver({m.cob_id: m.length for node in self._nodes.values()
-                                                  for m in enabled_maps(node.plan.tx)})
+                                                  for m in enabled_maps(node.plan.tx)}, clock.read_at)
         for cob in receiver.cob_ids:
             network.subscribe(cob, receiver.on_frame)
         if not self.config.bus.loopback:
@@ -559,19 +560,19 @@ class Driver:
         inbox = self._inbox
         for name, node in self._nodes.items():
             nid = node.cfg.node_id
-            client = GuardedSdoClient(0x600 + nid, 0x580 + nid, node.od)
+            client = GuardedSdoClient(0x600 + nid, 0x580 + nid, node.od, clock)
             client.network = network
             client.RESPONSE_TIMEOUT = self.sdo_timeout
             network.subscribe(0x580 + nid, client.on_response)
             sdo[name] = client
             boot = self._boot.setdefault(nid, threading.Event())
 
-            def on_heartbeat(can_id: int, data: Any, timestamp: float, boot: threading.Event = boot) -> None:
+            def on_heartbeat(can_id: int, data: Any, _ts: float, boot: threading.Event = boot) -> None:
                 payload = bytes(data)
                 if payload == b"\x00":
                     boot.set()
                 # stamped with when it arrived, not when this thread got to it
-                inbox.put(_Heartbeat(can_id - 0x700, payload, clock.arrival(timestamp, time.monotonic())))
+                inbox.put(_Heartbeat(can_id - 0x700, payload, clock.progress[1]))
 
             def on_emcy(can_id: int, data: Any, _ts: float) -> None:
                 inbox.put(_Emcy(can_id - 0x80, bytes(data), time.monotonic()))
@@ -885,14 +886,13 @@ class Driver:
                     try:
                         return transfer(client)
                     except (SdoCommunicationError, struct.error) as e:
-                        # canopen raises "no answer" from its response
-                        # queue's timeout; every other communication error
-                        # is an answer that was not this request's (another
+                        # apart from a missing answer (sdo.no_answer), every
+                        # communication error is an answer that was not this request's (another
                         # client's, "Node returned a value for ... instead",
                         # "Unexpected response"), whatever its wording, and
                         # so is an answer shorter than 8 bytes, which canopen
                         # fails to unpack (a forged or corrupt frame)
-                        foreign = not isinstance(e.__context__, queue.Empty)
+                        foreign = not no_answer(e)
                         late += 0 if foreign else 1
                         if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
                             if isinstance(e, struct.error):
@@ -1775,6 +1775,8 @@ class Driver:
     def status(self) -> List[Dict[str, Any]]:
         """One dict per node for diagnostics."""
         snap = self._snapshot
+        # how long the latest frame read had waited unread: a loaded host
+        receive_lag_ms = int(round(max(0.0, self._receive_clock.lag()) * 1000))
         out = []
         for a in snap.axes.values():
             out.append({
@@ -1790,6 +1792,7 @@ class Driver:
                 "commands_limited": _listed(a.counters, COMMAND_COUNTERS.__contains__),
                 "emcy_not_logged": a.counters.get(EMCY_NOT_LOGGED, 0),
                 "foreign_rpdo_frames": snap.foreign_frames,
+                "receive_lag_ms": receive_lag_ms,
             })
         return out
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import struct
 import time
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -88,12 +88,12 @@ class TpdoReceiver:
     forged frame would take the place of the drive's last good one and, if
     the drive's next frame came before the cycle read it, go unnoticed."""
 
-    def __init__(self, lengths: Mapping[int, int]) -> None:
+    def __init__(self, lengths: Mapping[int, int], clock: Callable[[], float] = time.monotonic) -> None:
         self.cob_ids = tuple(lengths)
         self.lengths = dict(lengths)
         self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
         self.rejected: Dict[int, int] = {c: 0 for c in self.cob_ids}
-        self._clock = time.monotonic
+        self._clock = clock  # when the frame being handled was read
 
     def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback: never raises."""

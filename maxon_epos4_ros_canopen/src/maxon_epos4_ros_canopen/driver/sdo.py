@@ -13,18 +13,33 @@ the drive's own refusal:
 Both are dropped here. Any other frame that is not the answer (another
 client's on the same channel) still fails the attempt, which the driver
 tries again (``Driver._sdo_transfer``).
+
+The timeout is judged by when the answer reached the host, not by when the
+notifier read it: a notifier behind on a loaded host may still hold an
+answer that came in time, unread. The transfer then waits until the
+notifier has read past the deadline (``bus.ReceiveClock.unread_before``).
 """
 from __future__ import annotations
 
+import queue
 import time
 from typing import Any, Optional, Tuple
 
 from canopen.sdo import SdoClient
+from canopen.sdo.exceptions import SdoCommunicationError
 
 from ..can_device import MAX_RECEIVE_LAG
+from .bus import ReceiveClock
 
 _ABORT = 0x80
 _INITIATE_DOWNLOAD, _INITIATE_UPLOAD = 1, 2  # client command specifiers (bits 7-5)
+_BACKLOG_POLL = 0.02  # s between two looks at a notifier that is behind
+
+
+def no_answer(e: BaseException) -> bool:
+    """Whether canopen raised ``e`` for a missing answer: it does so from its
+    response queue's timeout, and words other failures the same way."""
+    return isinstance(e.__context__, queue.Empty)
 
 
 class GuardedSdoClient(SdoClient):
@@ -32,11 +47,15 @@ class GuardedSdoClient(SdoClient):
 
     ``send_request`` runs in the thread that makes the transfer (under the
     driver's lock of that node), ``on_response`` in the bus's receive
-    thread: it only reads the two values the other sets before sending."""
+    thread: it only reads the values the other sets before sending.
+    ``receive_clock``: the notifier's, to judge a timeout by arrival."""
 
-    def __init__(self, rx_cobid: int, tx_cobid: int, od: Any) -> None:
+    def __init__(self, rx_cobid: int, tx_cobid: int, od: Any,
+                 receive_clock: Optional[ReceiveClock] = None) -> None:
         super().__init__(rx_cobid, tx_cobid, od)
+        self._receive_clock = receive_clock
         self._sent_at = 0.0                  # wall clock, as frame timestamps
+        self._sent_monotonic = 0.0           # the same moment, as the receive clock's
         self._multiplexer: Optional[bytes] = None
         self.frames = 0                      # every frame on the answer COB-ID
         self.dropped = 0                     # those taken for no answer
@@ -48,8 +67,32 @@ class GuardedSdoClient(SdoClient):
             self._multiplexer = bytes(request[1:4])
         elif command not in (0, 3):  # a segment keeps its transfer's object; block transfers are not guarded
             self._multiplexer = None
-        self._sent_at = time.time()
+        self._sent_at, self._sent_monotonic = time.time(), time.monotonic()
         super().send_request(request)
+
+    def read_response(self) -> bytes:
+        timeout = self.RESPONSE_TIMEOUT
+        try:
+            return super().read_response()
+        except SdoCommunicationError as e:
+            if self._receive_clock is None or not no_answer(e):
+                raise
+            missing = e
+        answer_by = self._sent_monotonic + timeout
+        # Past MAX_RECEIVE_LAG the receive clock takes a frame for read on
+        # arrival: no backlog is waited on longer than that.
+        give_up = time.monotonic() + MAX_RECEIVE_LAG
+        self.RESPONSE_TIMEOUT = _BACKLOG_POLL
+        try:
+            while self._receive_clock.unread_before(answer_by) and time.monotonic() < give_up:
+                try:
+                    return super().read_response()
+                except SdoCommunicationError as e:
+                    if not no_answer(e):
+                        raise
+        finally:
+            self.RESPONSE_TIMEOUT = timeout
+        raise missing
 
     def tally(self) -> Tuple[int, int]:
         """Frames seen and dropped so far, for ``since``."""

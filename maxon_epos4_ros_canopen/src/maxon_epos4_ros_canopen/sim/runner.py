@@ -18,7 +18,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 import can
 import canopen
 
-from ..can_device import arrival_time, open_device
+from ..can_device import ArrivalClock, open_device
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
 
@@ -71,6 +71,7 @@ class Simulator:
         # run on it, so frames queued while this loop was starved (a loaded
         # host) count from when they came, as a real drive would see them.
         self.bus_time = clock()
+        self._arrival = ArrivalClock(clock)
         self.frames_in = 0
         self.frames_out = 0
         self.busy_time = 0.0
@@ -213,7 +214,7 @@ class Simulator:
             self._rebuild_routes()
         burst = 0
         while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
-            self.bus_time = max(self.bus_time, arrival_time(msg.timestamp, now))
+            self.bus_time = max(self.bus_time, self._arrival.arrival(msg.timestamp, now))
             self.handle(msg, now)
             burst += 1
             msg = self._receive(0.0) if burst < 256 else None
