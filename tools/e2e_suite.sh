@@ -40,12 +40,25 @@ for t in "${tests[@]}"; do
     # The figure lines a test prints as it goes ("fault_matrix: ...") say
     # what happened before the failure, and CI keeps only this output.
     # rostest keeps a test's stdout in its JUnit file.
-    figures=$(grep -h -o -E '(fault_matrix|driver_fuzz|mani_fuzz|mani_garbage|sim_fuzz): [^<]*' \
+    figures=$(grep -h -o -E '((fault_matrix|driver_fuzz|mani_fuzz|mani_garbage|sim_fuzz): |controllers \[)[^<]*' \
                 -r "$results/xml/$pkg.$file" 2>/dev/null | tail -40 | cut -c1-400 \
               | sed -e "s/&apos;/'/g" -e 's/&quot;/"/g' -e 's/&lt;/</g' -e 's/&gt;/>/g' -e 's/&amp;/\&/g')
     if [ -n "$figures" ]; then
       echo "      --- the figure lines it printed:"
       echo "$figures" | sed 's/^/      /'
+    fi
+    # The nodes' own warnings and errors (the driver's, the simulator's):
+    # what they saw is often the cause, and CI keeps no log directory.
+    run_id=$(grep -rho 'run_id\[[^]]*\]' "$results/xml/$pkg.$file" 2>/dev/null | head -1 | sed 's/^run_id\[\(.*\)\]$/\1/')
+    if [ -n "$run_id" ]; then
+      for node_log in "${ROS_LOG_DIR:-$HOME/.ros/log}/$run_id"/*.log; do
+        [ -f "$node_log" ] || continue
+        lines=$(grep -E '\]\[(WARNING|ERROR|FATAL)\]' "$node_log" | grep -v ' EMCY 0x' | tail -15 | cut -c1-300)
+        if [ -n "$lines" ]; then
+          echo "      --- warnings and errors of $(basename "$node_log") (EMCY lines left out), the last 15:"
+          echo "$lines" | sed 's/^/      /'
+        fi
+      done
     fi
   fi
 done
