@@ -73,7 +73,7 @@ def driver_path(reader: can.BusABC) -> Tuple[int, float]:
     network = canopen.Network(reader)
     clock = ReceiveClock(unread_frames(reader))
     network.listeners.insert(0, clock)
-    receiver = TpdoReceiver({TPDO: 6}, clock.read_at)
+    receiver = TpdoReceiver({TPDO: 6}, clock.times)
     network.subscribe(TPDO, receiver.on_frame)
     network.connect()
     try:

@@ -25,6 +25,19 @@ DEFAULT_BITRATE = 1000000  # maxon's recommendation for EPOS4 networks
 # A receive stamp further from the wall clock than this is an adapter's own
 # clock (or the wall clock stepped): the frame counts as read on arrival.
 MAX_RECEIVE_LAG = 5.0
+# SocketCAN and python-can's virtual bus stamp each frame with this host's
+# wall clock: a lag seconds long is a real backlog (a host too loaded to
+# keep up: 5 to 15 s were seen in user-mode Linux under a storm of frames),
+# up to what a receive buffer holds, well under a minute of traffic.
+HOST_STAMPED_MAX_LAG = 60.0
+
+
+def max_receive_lag(bus: can.BusABC) -> float:
+    """How far behind a frame's receive stamp may be and still be a stamp of
+    this host's wall clock, for ``bus``."""
+    from can.interfaces.socketcan import SocketcanBus
+    from can.interfaces.virtual import VirtualBus
+    return HOST_STAMPED_MAX_LAG if isinstance(bus, (SocketcanBus, VirtualBus)) else MAX_RECEIVE_LAG
 
 
 class ArrivalClock:
@@ -38,13 +51,17 @@ class ArrivalClock:
     second, not for each frame: where reading a clock is a system call
     (user-mode Linux, about 80 us: more than the rest of a frame's handling)
     a busy bus would spend the reader's time on the clock and fall behind.
-    Reading it again each second follows a wall clock that was stepped.
+    Reading it again each second, and before a frame that seems to have
+    waited long, follows a wall clock that was stepped.
     One reader thread owns an instance."""
 
     REFRESH_S = 1.0
+    CHECK_LAG_S = 0.2  # a frame that waited longer has the offset read again first,
+    CHECK_S = 0.1      # unless it was read that recently
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic, max_lag: float = MAX_RECEIVE_LAG) -> None:
         self._clock = clock
+        self.max_lag = max_lag  # see max_receive_lag
         self._taken = -math.inf  # when the offset was read, on clock
         self._offset = 0.0       # wall clock minus clock
 
@@ -52,10 +69,19 @@ class ArrivalClock:
         """When a frame stamped ``timestamp`` and read at ``read_at`` (on
         clock) reached the host."""
         if not 0.0 <= read_at - self._taken <= self.REFRESH_S:
-            self._offset = time.time() - self._clock()
-            self._taken = read_at
+            self._refresh(read_at)
         lag = read_at + self._offset - timestamp
-        return read_at - lag if 0.0 <= lag <= MAX_RECEIVE_LAG else read_at
+        if lag > self.CHECK_LAG_S and read_at - self._taken > self.CHECK_S:
+            # a long wait, or a wall clock stepped back since the offset was
+            # read: which of the two, a fresh offset tells (a backlog asks at
+            # most every CHECK_S)
+            self._refresh(read_at)
+            lag = read_at + self._offset - timestamp
+        return read_at - lag if 0.0 <= lag <= self.max_lag else read_at
+
+    def _refresh(self, read_at: float) -> None:
+        self._offset = time.time() - self._clock()
+        self._taken = read_at
 
 
 # Receive buffer asked for on a SocketCAN socket: about a second of a full

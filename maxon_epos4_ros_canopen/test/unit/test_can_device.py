@@ -145,3 +145,32 @@ def test_arrival_clock_reads_the_wall_clock_once_a_second_and_follows_a_step(mon
     mono[0] += ArrivalClock.REFRESH_S + 0.1
     assert clock.arrival(wall[0] - 0.1, mono[0]) == pytest.approx(mono[0] - 0.1)
     assert len(wall_reads) == 2
+
+
+def test_a_host_stamped_bus_tells_a_backlog_of_many_seconds():
+    """SocketCAN and the virtual bus stamp frames with this host's wall clock:
+    a frame 20 s late is a backlog (a host far behind), not another clock;
+    elsewhere more than 5 s is taken for an adapter's own clock."""
+    bus = can.Bus(interface="virtual", channel="lag_" + uuid.uuid4().hex)
+    try:
+        assert can_device.max_receive_lag(bus) == can_device.HOST_STAMPED_MAX_LAG
+    finally:
+        bus.shutdown()
+    read_at = time.monotonic()
+    host = ArrivalClock(max_lag=can_device.HOST_STAMPED_MAX_LAG)
+    assert host.arrival(time.time() - 20.0, read_at) == pytest.approx(read_at - 20.0, abs=0.01)
+    assert ArrivalClock().arrival(time.time() - 20.0, read_at) == read_at
+
+
+def test_arrival_clock_does_not_take_a_wall_clock_stepped_back_for_a_long_wait(monkeypatch):
+    """A wall clock stepped back (NTP) between two reads of the offset would
+    make every frame look seconds late, and a heartbeat watchdog trip: a
+    frame that seems to have waited long has the offset read again first."""
+    wall, mono = [1000.0], [50.0]
+    monkeypatch.setattr(can_device.time, "time", lambda: wall[0])
+    clock = ArrivalClock(clock=lambda: mono[0], max_lag=can_device.HOST_STAMPED_MAX_LAG)
+    assert clock.arrival(wall[0] - 0.01, mono[0]) == pytest.approx(mono[0] - 0.01)
+    mono[0] += 0.3
+    wall[0] += 0.3 - 3.0  # stepped 3 s back; the kernel stamps by the new wall clock
+    assert clock.arrival(wall[0] - 0.01, mono[0]) == pytest.approx(mono[0] - 0.01)
+

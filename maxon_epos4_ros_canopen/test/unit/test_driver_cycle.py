@@ -33,7 +33,7 @@ class Harness:
     """One axis fed with TPDO frames through the receiver, as the CAN
     notifier would; what it sends is recorded frame by frame."""
 
-    def __init__(self, **node):
+    def __init__(self, configured_at=0.0, receive_times=None, **node):
         params = {"sync": {"interval_ms": 10},
                   "nodes": {"n1": dict({"id": 1, "name": "j", "eds_file": DCF, "pos_to_device": "pos",
                                         "pos_from_device": "obj6064", "vel_to_device": "vel",
@@ -44,8 +44,8 @@ class Harness:
         rx = tuple(RxPdo(od, m) for m in enabled_maps(plan.rx))
         tx = tuple(TxPdo(od, m) for m in enabled_maps(plan.tx))
         self.axis = Axis(cfg.nodes[0], od, plan, JointLimits())
-        self.axis.attach(Binding(rx, tx, {k: 0 for r in rx for k in r.keys}, {}, 0, 0, 0.0), 0, 0.0)
-        self.receiver = TpdoReceiver({t.cob_id: t.length for t in tx})
+        self.axis.attach(Binding(rx, tx, {k: 0 for r in rx for k in r.keys}, {}, 0, 0, configured_at), 0, 0.0)
+        self.receiver = TpdoReceiver({t.cob_id: t.length for t in tx}, *([receive_times] if receive_times else []))
         self.payload = {0x181: struct.pack("<Hb", SW_SWITCH_ON_DISABLED, 1), 0x281: struct.pack("<ii", 0, 0),
                         0x381: struct.pack("<ii", 0, 0)}
         self.frames = []
@@ -198,6 +198,20 @@ def test_halt_sets_bit_8_and_refuses_commands(h):
     assert h.controlword() & 0x0100
     r = j.apply_command("position", 5)
     assert not r.success and "halted" in r.message
+
+
+def test_a_tpdo_that_arrived_before_the_drive_was_configured_is_not_taken_however_late_it_is_read():
+    """A receive backlog (a loaded host) hands the cycle frames late: one
+    that reached the host before the drive was (re)configured, by init or
+    recover, tells of the drive before that, however late it is read.
+    Taken, a statusword of before recover put the joint back in error."""
+    times = [(100.0, 50.0)]  # (read, arrived): read after the configuration at 60 s, arrived before it
+    h = Harness(configured_at=60.0, receive_times=lambda: times[0])
+    h.cycle(sw=SW_QUICK_STOP)
+    assert h.axis.state is None and h.axis.error is None
+    times[0] = (101.0, 61.0)
+    h.cycle(sw=SW_SWITCH_ON_DISABLED)
+    assert h.axis.state == State.SWITCH_ON_DISABLED
 
 
 def test_readings_follow_the_from_device_expressions():

@@ -417,7 +417,7 @@ class Axis:
             if frame is None or frame is seen[i]:
                 continue
             seen[i] = frame
-            if frame[1] < self._fresh_after:
+            if frame[2] < self._fresh_after:  # arrived before the node was (re)configured
                 continue
             data = frame[0]
             if len(data) != length:  # TxPdo.decode's check, inlined

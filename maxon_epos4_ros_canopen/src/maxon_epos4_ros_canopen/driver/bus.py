@@ -14,7 +14,7 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 import can
 
-from ..can_device import ArrivalClock, open_device
+from ..can_device import MAX_RECEIVE_LAG, ArrivalClock, open_device
 from ..config import BusConfig, HeartbeatConfig
 
 SYNC_COB_ID = 0x080
@@ -229,15 +229,20 @@ class ReceiveClock(can.Listener):
     immutable tuple: (monotonic time the latest frame was read, when it
     arrived)."""
 
-    def __init__(self, unread: Callable[[], bool] = lambda: False) -> None:
+    def __init__(self, unread: Callable[[], bool] = lambda: False, max_lag: float = MAX_RECEIVE_LAG) -> None:
         now = time.monotonic()
         self.progress: Tuple[float, float] = (now, now)
         self._unread = unread
-        self._arrival = ArrivalClock()
+        self._arrival = ArrivalClock(max_lag=max_lag)
+        self.max_lag = max_lag  # the longest backlog it can tell (can_device.max_receive_lag)
 
     def on_message_received(self, msg: can.Message) -> None:
         now = time.monotonic()
         self.progress = (now, self._arrival.arrival(msg.timestamp, now))
+
+    def times(self) -> Tuple[float, float]:
+        """When the frame being handled (the latest) was read, and when it arrived."""
+        return self.progress
 
     def read_at(self) -> float:
         """When the frame being handled (the latest) was read."""

@@ -41,6 +41,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 from .. import cia402
 from ..cia402 import State
 from .budget import check_budget
+from ..can_device import max_receive_lag
 from ..config import ConfigError, DriverConfig
 from ..limits import JointLimits, saturate
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_value, encode_value,
@@ -537,7 +538,7 @@ class Driver:
                 raise _InitError("cannot open CAN device %r: %s" % (self.config.bus.device, e)) from None
         network = canopen.Network(self.bus)
         # first, so that every subscriber takes its frame's times from it
-        self._receive_clock = clock = ReceiveClock(unread_frames(self.bus))
+        self._receive_clock = clock = ReceiveClock(unread_frames(self.bus), max_receive_lag(self.bus))
         network.listeners.insert(0, clock)
         network.connect()
         # python-can's notifier ends its reader thread on the first receive
@@ -546,7 +547,7 @@ class Driver:
         network.notifier.add_listener(_ReceiveErrors(network.notifier))
         self.network = network
         self._receiver = receiver = TpdoReceiver({m.cob_id: m.length for node in self._nodes.values()
-                                                  for m in enabled_maps(node.plan.tx)}, clock.read_at)
+                                                  for m in enabled_maps(node.plan.tx)}, clock.times)
         for cob in receiver.cob_ids:
             network.subscribe(cob, receiver.on_frame)
         if not self.config.bus.loopback:

@@ -24,7 +24,7 @@ from canopen.objectdictionary import ObjectDictionary
 from ..objects import ObjectKey, find_variable
 from .plan import MapPlan
 
-Frame = Tuple[bytes, float]  # payload, time.monotonic() of reception
+Frame = Tuple[bytes, float, float]  # payload, when it was read and when it arrived (time.monotonic())
 
 
 class PdoLayoutError(ValueError):
@@ -80,6 +80,11 @@ class TxPdo:
         return self._st.unpack(data)
 
 
+def _read_on_arrival() -> Tuple[float, float]:
+    now = time.monotonic()
+    return now, now
+
+
 class TpdoReceiver:
     """Latest frame of each TPDO COB-ID, filled by the CAN notifier thread.
 
@@ -88,19 +93,20 @@ class TpdoReceiver:
     forged frame would take the place of the drive's last good one and, if
     the drive's next frame came before the cycle read it, go unnoticed."""
 
-    def __init__(self, lengths: Mapping[int, int], clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, lengths: Mapping[int, int],
+                 clock: Callable[[], Tuple[float, float]] = _read_on_arrival) -> None:
         self.cob_ids = tuple(lengths)
         self.lengths = dict(lengths)
         self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
         self.rejected: Dict[int, int] = {c: 0 for c in self.cob_ids}
-        self._clock = clock  # when the frame being handled was read
+        self._clock = clock  # (when the frame being handled was read, when it arrived)
 
     def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback: never raises."""
         if len(data) != self.lengths[can_id]:
             self.rejected[can_id] += 1
             return
-        self.slots[can_id] = (bytes(data), self._clock())
+        self.slots[can_id] = (bytes(data),) + self._clock()
 
     def latest(self, cob_id: int) -> Optional[Frame]:
         return self.slots.get(cob_id)

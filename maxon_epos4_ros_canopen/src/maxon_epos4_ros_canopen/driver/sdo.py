@@ -54,6 +54,7 @@ class GuardedSdoClient(SdoClient):
                  receive_clock: Optional[ReceiveClock] = None) -> None:
         super().__init__(rx_cobid, tx_cobid, od)
         self._receive_clock = receive_clock
+        self._max_lag = MAX_RECEIVE_LAG if receive_clock is None else receive_clock.max_lag
         self._sent_at = 0.0                  # wall clock, as frame timestamps
         self._sent_monotonic = 0.0           # the same moment, as the receive clock's
         self._multiplexer: Optional[bytes] = None
@@ -79,9 +80,9 @@ class GuardedSdoClient(SdoClient):
                 raise
             missing = e
         answer_by = self._sent_monotonic + timeout
-        # Past MAX_RECEIVE_LAG the receive clock takes a frame for read on
-        # arrival: no backlog is waited on longer than that.
-        give_up = time.monotonic() + MAX_RECEIVE_LAG
+        # Past max_lag the receive clock takes a frame for read on arrival:
+        # no backlog is waited on longer than that.
+        give_up = time.monotonic() + self._receive_clock.max_lag
         self.RESPONSE_TIMEOUT = _BACKLOG_POLL
         try:
             while self._receive_clock.unread_before(answer_by) and time.monotonic() < give_up:
@@ -116,7 +117,7 @@ class GuardedSdoClient(SdoClient):
         lag = time.time() - timestamp
         # a timestamp far from the wall clock is another clock's (an
         # adapter's own): it says nothing of when the frame came
-        if 0.0 <= lag <= MAX_RECEIVE_LAG and timestamp < self._sent_at:
+        if 0.0 <= lag <= self._max_lag and timestamp < self._sent_at:
             self._drop("%s stamped %.3f s before the request" % (payload.hex(), self._sent_at - timestamp))
             return
         if len(payload) == 8 and payload[0] == _ABORT and self._multiplexer is not None \

@@ -18,7 +18,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple
 import can
 import canopen
 
-from ..can_device import ArrivalClock, open_device
+from ..can_device import ArrivalClock, max_receive_lag, open_device
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
 
@@ -71,7 +71,7 @@ class Simulator:
         # run on it, so frames queued while this loop was starved (a loaded
         # host) count from when they came, as a real drive would see them.
         self.bus_time = clock()
-        self._arrival = ArrivalClock(clock)
+        self._arrival = ArrivalClock(clock, max_receive_lag(bus))
         self.frames_in = 0
         self.frames_out = 0
         self.busy_time = 0.0
