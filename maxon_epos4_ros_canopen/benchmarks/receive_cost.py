@@ -78,12 +78,12 @@ def driver_path(reader: can.BusABC) -> Tuple[int, float]:
     network.connect()
     try:
         # drained once the socket is empty and nothing more was read for a while
-        while clock.unread_before(time.monotonic()) or time.monotonic() - clock.read_at() < 0.3:
+        while clock.unread_before(time.monotonic()) or time.monotonic() - clock.progress[0] < 0.3:
             time.sleep(0.05)
     finally:
         network.disconnect()
     frame = receiver.slots[TPDO]
-    return (int.from_bytes(frame[0], "little") + 1 if frame else 0), clock.read_at()
+    return (int.from_bytes(frame[0], "little") + 1 if frame else 0), clock.progress[0]
 
 
 def drain(channel: str, frames: int, read: Callable[[can.BusABC], Tuple[int, float]]) -> Tuple[int, float]:

@@ -244,10 +244,6 @@ class ReceiveClock(can.Listener):
         """When the frame being handled (the latest) was read, and when it arrived."""
         return self.progress
 
-    def read_at(self) -> float:
-        """When the frame being handled (the latest) was read."""
-        return self.progress[0]
-
     def lag(self) -> float:
         """How long the latest frame read had waited in the receive queue (s)."""
         read_at, arrived = self.progress
