@@ -214,6 +214,26 @@ def test_a_tpdo_that_arrived_before_the_drive_was_configured_is_not_taken_howeve
     assert h.axis.state == State.SWITCH_ON_DISABLED
 
 
+def test_a_statusword_that_arrived_before_a_state_request_does_not_confirm_it():
+    """A receive backlog hands the cycle statuswords seconds after they
+    arrived: one that arrived before a state was requested says nothing of
+    the drive's answer to the request. Taken, `recover` answered
+    "recovered" for a drive that had quick-stopped meanwhile."""
+    lag = [0.0]
+    h = Harness(receive_times=lambda: (time.monotonic(), time.monotonic() - lag[0]))
+    h.cycle(sw=SW_SWITCH_ON_DISABLED)
+    lag[0] = 5.0   # what is read from now on arrived 5 s ago, before the request
+    h.axis.request_state(State.OPERATION_ENABLED)
+    h.cycle(sw=SW_ENABLED)
+    h.cycle(sw=SW_ENABLED)
+    assert h.axis.target_state == State.OPERATION_ENABLED
+    assert h.axis.held_state != State.OPERATION_ENABLED
+    lag[0] = 0.0   # the backlog is read: the drive's own answer
+    h.cycle(sw=SW_ENABLED)
+    assert h.axis.target_state is None
+    assert h.axis.held_state == State.OPERATION_ENABLED
+
+
 def test_readings_follow_the_from_device_expressions():
     h = Harness(pos_from_device="obj6064/2", vel_from_device="smooth(obj606C, vel, 0.5)")
     h.cycle(pos=1000, vel=100)

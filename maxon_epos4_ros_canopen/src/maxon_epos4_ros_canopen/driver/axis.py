@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Tuple
@@ -246,6 +247,8 @@ class Axis:
         # what the driver works towards
         self.target_state: Optional[State] = None
         self._confirm_after = 0  # status_seen_cycle when target_state was requested
+        self._requested_at = 0.0  # monotonic time target_state was requested
+        self.status_arrived = 0.0  # monotonic time the last statusword TPDO taken arrived
         # The drive left the held state on its own for a state that is no
         # fault, or the driver lost sight of it (no heartbeat, no TPDO, not
         # OPERATIONAL, bus error): its state is not the held one or
@@ -427,6 +430,7 @@ class Axis:
             if i == self._status_pdo:
                 self.status_seen = frame[1]
                 self.status_seen_cycle = cycle
+                self.status_arrived = frame[2]
         si, sj = self._sw_at
         if vals[si] is None:
             return
@@ -485,7 +489,8 @@ class Axis:
         if state is None:
             return
         if target is not None:
-            if state == target and self.status_seen_cycle > self._confirm_after:
+            if (state == target and self.status_seen_cycle > self._confirm_after
+                    and self.status_arrived > self._requested_at):
                 self.target_state = None
                 self.held_state = state
                 if state != State.FAULT:
@@ -649,8 +654,11 @@ class Axis:
         self.quick_stop_hold = False
         # Only a statusword that comes after the request confirms it: the
         # last one may be stale (a drive that left PDO exchange quick-stopped
-        # meanwhile) and would end the request at once.
+        # meanwhile) and would end the request at once. "After" by when it
+        # arrived, too: one read from a receive backlog may have arrived
+        # seconds before the request.
         self._confirm_after = self.status_seen_cycle
+        self._requested_at = time.monotonic()
 
     def mode_confirmed(self, number: int) -> None:
         """0x6061 read by SDO (modes display not mapped to a TPDO)."""
