@@ -673,6 +673,26 @@ def test_a_boot_up_after_another_error_is_still_reported_as_a_reboot(rig):
     assert "position reference is lost" in r.message
 
 
+def test_recover_fails_when_a_drive_leaves_operation_enabled_before_it_ends(rig):
+    """A drive confirmed enabled can leave Operation Enabled during recover's
+    last steps (a simulator on a loaded host still finishing the quick stop
+    of its NMT-stop reaction did): recover says so instead of "recovered"."""
+    d = ppm_ready(rig)
+    rig.sim.inject_fault(1, "emcy", 0x8611)
+    assert until(lambda: d.joints[J1].error is not None)
+    last_steps = d._wait_cycles
+
+    def drive_faults_again(*args, **kwargs):
+        if d.joints[J1].error is None:
+            rig.sim.inject_fault(1, "emcy", 0x8611)
+            assert until(lambda: d.joints[J1].error is not None)
+        return last_steps(*args, **kwargs)
+    d._wait_cycles = drive_faults_again
+    r = d.recover()
+    assert not r.success, r.message
+    assert J1 in r.message and "fault" in r.message, r.message
+
+
 def test_recover_names_the_drive_that_did_not_answer(rig):
     """A drive whose SDO answers come later than all three attempts: recover
     fails, and says which drive, not only that an answer was missing."""

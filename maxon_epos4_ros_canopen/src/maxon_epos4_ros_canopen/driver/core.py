@@ -1451,6 +1451,12 @@ class Driver:
                 if not r:
                     return fail("recover: " + r.message)
         self._wait_cycles(2)
+        # a drive confirmed enabled above may have left it since (one still
+        # finishing a quick stop it began by itself): not "recovered" then
+        snap = self._snapshot
+        again = ["%s: %s" % (n, snap.axes[n].error) for n in names if snap.axes[n].error]
+        if again:
+            return fail("recover: in error again before recover ended: " + "; ".join(again))
         return ok("recovered" + ("; " + "; ".join(notes) if notes else ""))
 
     def shutdown(self) -> Result:
