@@ -673,6 +673,88 @@ def test_a_boot_up_after_another_error_is_still_reported_as_a_reboot(rig):
     assert "position reference is lost" in r.message
 
 
+def test_recover_reads_a_drive_state_only_after_its_quick_stop_hold_took_effect(rig):
+    """A drive put in NMT STOPPED by someone else keeps turning in Operation
+    Enabled, unseen; started again by recover, it takes the quick stop the
+    driver holds it with. Recover once read its statusword over SDO while
+    that quick stop was still on its way (the cycle thread starved): the
+    answer said Operation Enabled, a TxPDO the drive sent before the quick
+    stop reached it came late (a busy drive) and confirmed Operation
+    Enabled, and the quick stop then took the drive out of it: "recovered",
+    and the drive not enabled."""
+    from maxon_epos4_ros_canopen.driver import core
+    d = ppm_ready(rig, defaults={"dcf_overlay": {"1017": "100"}})
+    assert d.set_command(J1, "position", 400000).success  # a long move: the drive turns
+    assert until(lambda: abs(rig.read(0x606C)) > 100)
+    _stop_by_nmt(rig, 0x02)
+    assert until(lambda: d.joints[J1].error is not None)
+    assert rig.state() == State.OPERATION_ENABLED  # stopped for NMT, still turning
+
+    gate = threading.Event()  # cleared: the cycle thread stalls before it sends RPDOs
+    gate.set()
+    attached = threading.Event()
+    frozen, thaw = threading.Event(), threading.Event()
+    sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
+
+    def starved_cycle(driver):
+        if not gate.is_set():
+            gate.wait(0.5)
+    d.add_cycle_callback(starved_cycle)
+    post = d._post
+
+    def watch_post(*messages):
+        if any(type(m).__name__ == "_Attach" for m in messages):
+            gate.clear()
+            attached.set()
+        return post(*messages)
+    d._post = watch_post
+
+    def busy_drive():  # the simulated drive reads nothing from the bus until thawed
+        rig.sim.call(lambda: (frozen.set(), thaw.wait(20.0)), timeout=30.0)
+
+    def thaw_after_the_request():
+        assert until(lambda: d.joints[J1].error is None, 10.0)  # recover's request is in the cycle
+        thaw.set()
+    upload = d._upload
+    thawing = []
+
+    def statusword_of_a_busy_drive(name, key):
+        value = upload(name, key)
+        if key == core.STATUSWORD and attached.is_set() and not thawing:
+            # the drive answers a SYNC from the state it is in now; the
+            # cycle reads that TxPDO and sends what it holds the drive with
+            rig.drain()
+            rig.sniffer.send(sync)
+            assert until(lambda: rig.sent(0x181), 5.0)
+            threading.Thread(target=busy_drive, daemon=True).start()
+            assert frozen.wait(5.0)
+            # another SYNC reaches the drive before that controlword does
+            rig.sniffer.send(sync)
+            cycle = d.cycles
+            gate.set()
+            assert until(lambda: d.cycles > cycle + 2, 5.0)
+            thawing.append(threading.Thread(target=thaw_after_the_request, daemon=True))
+            thawing[0].start()
+        return value
+    d._upload = statusword_of_a_busy_drive
+    try:
+        r = d.recover()
+    finally:
+        thaw.set()
+        gate.set()
+        d._upload, d._post = upload, post
+        d.remove_cycle_callback(starved_cycle)
+    assert thawing, "recover read no statusword after it started the node again"
+    assert r.success, r.message
+    # the drive has read everything the driver sent before recover answered,
+    # and the driver the drive's answers to it
+    rig.sim.call(lambda: None)
+    cycle = d.cycles
+    assert until(lambda: d.joints[J1].status_cycle > cycle + 2)
+    assert d.joints[J1].error is None, d.joints[J1].error
+    assert rig.state() == State.OPERATION_ENABLED
+
+
 def test_recover_fails_when_a_drive_leaves_operation_enabled_before_it_ends(rig):
     """A drive confirmed enabled can leave Operation Enabled during recover's
     last steps (a simulator on a loaded host still finishing the quick stop

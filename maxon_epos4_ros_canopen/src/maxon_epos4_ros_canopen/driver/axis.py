@@ -334,8 +334,16 @@ class Axis:
         # The controlword that holds the state the drive was in when it was
         # configured (holding_controlword): a node recover configured
         # without a reset may be enabled, and must stay so, and no more,
-        # until the driver asks for another state.
-        first_cw = int(binding.initial_out.get(CONTROLWORD, 0)) & ~cia402.CW_FAULT_RESET_BIT
+        # until the driver asks for another state. One the driver holds
+        # with quick stop (it lost sight of it) gets that from the first
+        # RxPDO on, not only once a TxPDO shows its state: recover reads
+        # the state after this controlword reached the drive, and one that
+        # changed it later would take the drive out of the state recover
+        # confirmed.
+        if self.quick_stop_hold:
+            first_cw = cia402.CW_QUICK_STOP
+        else:
+            first_cw = int(binding.initial_out.get(CONTROLWORD, 0)) & ~cia402.CW_FAULT_RESET_BIT
         self._set_out(CONTROLWORD, first_cw)
         if self.active_mode is not None:
             self._set_out(MODES_OF_OPERATION, self.active_mode)

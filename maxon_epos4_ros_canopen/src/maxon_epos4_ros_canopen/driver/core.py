@@ -1423,6 +1423,16 @@ class Driver:
                 # that left OPERATIONAL by itself (its communication error
                 # behaviour, 0x1029) is started again; harmless otherwise
                 self._nmt(NMT_START, self._nodes[name].cfg.node_id)
+        # Each drive's state is read over SDO only once the controlword the
+        # cycle holds it with (quick stop, for one it lost sight of) and a
+        # SYNC after it went out since it was started: the drive answers in
+        # the order frames came, so the answer shows that controlword's
+        # effect, and no TxPDO the drive sent before it can come after the
+        # request below and confirm a state the drive is about to leave.
+        # The cycle that takes the attach sends it (in-cycle SYNC, or the
+        # kernel's SYNC before the next cycle): two cycles on, it is out.
+        if not self._wait(lambda s: True, self.state_timeout, self._post() + 2):
+            return fail("recover: the control cycle did not run for %g s" % self.state_timeout)
         clear = []
         for name in names:
             try:
