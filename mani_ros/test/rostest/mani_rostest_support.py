@@ -13,6 +13,11 @@ from nav_msgs.msg import Odometry
 from mani_ros.msg import LocomotionControlAction, LocomotionControlGoal
 
 
+# How long a command stream may take to move the rover as far as a test asks:
+# generous, it only bounds how long a failure takes on a loaded host.
+DRIVE_TIMEOUT = 60.0
+
+
 def wait_until(condition: Callable[[], bool], timeout: float, step: float = 0.05) -> bool:
     """Poll condition until it holds or timeout [s] passes; returns the last value."""
     deadline = time.monotonic() + timeout
@@ -20,6 +25,21 @@ def wait_until(condition: Callable[[], bool], timeout: float, step: float = 0.05
         if condition():
             return True
         time.sleep(step)
+    return bool(condition())
+
+
+def drive_until(publish: Callable[[], None], condition: Callable[[], bool], timeout: float,
+                rate: float = 20.0) -> bool:
+    """Call publish (a command stream, as a joystick or a planner sends it)
+    at ``rate`` Hz until condition holds or timeout [s] passes; returns the
+    last value of condition. On a loaded host the stack answers late: a
+    command stream of a fixed length moves the rover a varying distance."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and not rospy.is_shutdown():
+        if condition():
+            return True
+        publish()
+        time.sleep(1.0 / rate)
     return bool(condition())
 
 

@@ -78,24 +78,32 @@ class SdoProbe:
             self._nodes[node_id] = node
         return self._nodes[node_id]
 
-    def read(self, node_id: int, index: int, subindex: int = 0, signed: bool = False) -> int:
+    def read(self, node_id: int, index: int, subindex: int = 0, signed: bool = False,
+             within: float = 0.0) -> int:
+        """Three attempts (the driver may be using the same SDO channel a
+        moment), and more until ``within`` seconds have passed: a drive still
+        working off a backlog of frames answers late."""
         last: Optional[Exception] = None
-        for _ in range(3):  # the driver may be using the same SDO channel a moment
+        deadline = time.monotonic() + within
+        attempts = 0
+        while attempts < 3 or time.monotonic() < deadline:
+            attempts += 1
             try:
                 data = self._node(node_id).sdo.upload(index, subindex)
                 return int.from_bytes(data, "little", signed=signed)
             except (SdoError, can.CanError, struct.error) as exc:  # struct.error: a forged short answer
                 last = exc
                 time.sleep(0.5)
-        raise AssertionError("SDO read of node %d 0x%04X/%d failed: %s" % (node_id, index, subindex, last))
+        raise AssertionError("SDO read of node %d 0x%04X/%d failed (%d attempts): %s"
+                             % (node_id, index, subindex, attempts, last))
 
     def velocity(self, node_id: int) -> int:
         """0x606C velocity actual value."""
         return self.read(node_id, 0x606C, signed=True)
 
-    def position(self, node_id: int) -> int:
+    def position(self, node_id: int, within: float = 0.0) -> int:
         """0x6064 position actual value."""
-        return self.read(node_id, 0x6064, signed=True)
+        return self.read(node_id, 0x6064, signed=True, within=within)
 
     def close(self) -> None:
         self.network.disconnect()
