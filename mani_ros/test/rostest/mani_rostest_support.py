@@ -1,6 +1,7 @@
 """Helpers of the mani_ros rostest scripts (imported from the scripts beside it)."""
 from __future__ import annotations
 
+import os
 import time
 from typing import Any, Callable, List, Optional
 
@@ -13,12 +14,22 @@ from nav_msgs.msg import Odometry
 from mani_ros.msg import LocomotionControlAction, LocomotionControlGoal
 
 
+# How long the nodes of a launch file may take to come up (slow in user-mode
+# Linux): generous, it only bounds how long a failure takes.
+STARTUP_TIMEOUT = 120.0
 # How long a command stream may take to move the rover as far as a test asks:
 # generous, it only bounds how long a failure takes on a loaded host.
 DRIVE_TIMEOUT = 60.0
 # How far this test's CAN reader may lag behind the bus: generous, it only
 # bounds how long a failure takes on a loaded host.
 READER_TIMEOUT = 30.0
+# How long a node may take to handle an input (a frame, a message) and show
+# it on a topic: generous, it only bounds how long a failure takes on a
+# loaded host.
+HANDLED_TIMEOUT = 30.0
+# An id no MANI node sends or reads (docs/mani_protocol.md): the frame a test
+# puts on a bus without traffic of its own to catch its reader up.
+MARKER_ID = 0x7FF
 
 
 def wait_until(condition: Callable[[], bool], timeout: float, step: float = 0.05) -> bool:
@@ -92,15 +103,21 @@ class OdomWatcher:
         twist = self.latest.twist.twist
         return max(abs(twist.linear.x), abs(twist.linear.y), abs(twist.angular.z)) < tolerance
 
+    def after(self, call: Callable[[], Any], what: str, timeout: float = DRIVE_TIMEOUT) -> Any:
+        """Call ``call`` (a service, say) and wait for odometry computed after
+        it has returned: the messages in flight were computed before and say
+        nothing about its effect. Returns what ``call`` returned."""
+        answer = call()
+        after = rospy.Time.now()
+        if not wait_until(lambda: self.newer_than(after), timeout):
+            raise AssertionError("no odometry computed after %s" % what)
+        return answer
+
     def reset(self, service: Callable[[], Any], timeout: float = DRIVE_TIMEOUT) -> Any:
         """Call the odometry reset service and wait for odometry computed after
         it: the messages in flight still carry the old pose. Returns the
         service's answer."""
-        answer = service()
-        after = rospy.Time.now()
-        if not wait_until(lambda: self.newer_than(after), timeout):
-            raise AssertionError("no odometry computed after the reset")
-        return answer
+        return self.after(service, "the reset", timeout)
 
 
 class TopicLog:
@@ -116,13 +133,26 @@ class TopicLog:
     def clear(self) -> None:
         self.messages = []
 
+    def stamped_after(self, stamp: rospy.Time) -> Optional[Any]:
+        """The first message (of a stamped type) whose header says it was
+        made after ``stamp``, or None. A node that stamps what it publishes
+        with its clock (the test's) says by it when it handled the input."""
+        for msg in list(self.messages):
+            if msg.header.stamp > stamp:
+                return msg
+        return None
+
 
 class FrameRecorder(can.Listener):
     """Records the frames seen on the test's CAN bus (``~device``, socketcan)."""
 
-    def __init__(self) -> None:
+    def __init__(self, channel: Optional[str] = None) -> None:
+        """channel: the CAN interface; None: the test's ``~device``."""
         self.frames: List[can.Message] = []
-        self.bus = can.Bus(interface="socketcan", channel=rospy.get_param("~device", "vcan0"))
+        self.channel = channel or rospy.get_param("~device", "vcan0")
+        self._markers_sent: List[bytes] = []
+        self._markers_seen: List[bytes] = []
+        self.bus = can.Bus(interface="socketcan", channel=self.channel)
         self.notifier = can.Notifier(self.bus, [self])
 
     def close(self) -> None:
@@ -130,6 +160,10 @@ class FrameRecorder(can.Listener):
         self.bus.shutdown()
 
     def on_message_received(self, msg: can.Message) -> None:
+        if msg.arbitration_id == MARKER_ID and bytes(msg.data) in self._markers_sent:
+            # This recorder's own marker: not a frame of the bus.
+            self._markers_seen.append(bytes(msg.data))
+            return
         self.frames.append(msg)
 
     def clear(self) -> None:
@@ -146,3 +180,19 @@ class FrameRecorder(can.Listener):
         its powerFb (simulation.eps_period)."""
         since = time.time()
         return wait_until(lambda: bool(self.frames) and self.frames[-1].timestamp > since, timeout)
+
+    def catch_up_by_marker(self, timeout: float = READER_TIMEOUT) -> bool:
+        """catch_up for a bus that carries no traffic of its own (one that
+        must stay silent): send a marker frame (MARKER_ID, eight random
+        bytes) from a second socket, which socketcan hands this reader like
+        any other socket's frame, and wait until it is in; every frame sent
+        before it is in then. Markers never show in ``frames``."""
+        token = os.urandom(8)
+        self._markers_sent.append(token)
+        sender = can.Bus(interface="socketcan", channel=self.channel)
+        try:
+            sender.send(can.Message(arbitration_id=MARKER_ID, data=token, is_extended_id=False),
+                        timeout=1.0)
+        finally:
+            sender.shutdown()
+        return wait_until(lambda: token in self._markers_seen, timeout)
