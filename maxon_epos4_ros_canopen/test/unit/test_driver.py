@@ -3,6 +3,7 @@ virtual bus: frames on the bus and values in the simulated drive's object
 dictionary are what the tests look at."""
 import math
 import os
+import struct
 import threading
 import time
 
@@ -35,7 +36,19 @@ SEED_UNITS = {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_devi
 GENEROUS_MASTER_CONSUMER = {"1016sub1": "0x007F07D0"}
 
 
-def until(pred, timeout=5.0):
+SYNC_MS = 10  # the rig's SYNC period (and cycle)
+# How long a wait for a condition may take before the test fails: generous,
+# it only bounds how long a failure takes on a loaded host.
+TIMEOUT = 5.0
+# A check that something did NOT happen first lets the driver and the drive
+# have this many cycles (SYNC periods) to do it (Rig.had_the_chance).
+CHANCE_CYCLES = 20
+# Long enough for an RxPDO that did not change to be sent again (every
+# REFRESH_CYCLES = 50 cycles of 10 ms), with room for a loaded host.
+REFRESH_WAIT = 10.0
+
+
+def until(pred, timeout=TIMEOUT):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if pred():
@@ -68,7 +81,7 @@ class Rig:
             sim_nodes.append(SimNode(nid, sim_dcf, hard_stop))
         self.sim = Simulator(self._bus(), sim_nodes).start()
         params = {"bus": {"device": "virtual:" + self.channel},
-                  "sync": {"interval_ms": 10, "overflow": 0},
+                  "sync": {"interval_ms": SYNC_MS, "overflow": 0},
                   "heartbeat": {"rate": 20, "msg": "77f#05"},
                   "nodes": {"node%d" % nid: {"id": nid, "name": name, "eds_file": dcf}
                             for nid, dcf, name in nodes},
@@ -104,6 +117,26 @@ class Rig:
     def sent(self, cob_id):
         """Payloads sent to cob_id since the last drain()."""
         return [bytes(m.data) for m in self._collect() if m.arbitration_id == cob_id]
+
+    def sim_ran(self, seconds: float = 0.0) -> bool:
+        """Wait until the simulator handled every frame queued before this
+        call and its clock ran on for at least ``seconds`` (counted in its
+        loop's ticks, Simulator.ticks: two more than the period needs, as
+        a loop that fell behind ticks twice in a row once)."""
+        start = self.sim.ticks
+        ticks = 2 + int(math.ceil(seconds / self.sim.tick_period))
+        return until(lambda: self.sim.ticks >= start + ticks)
+
+    def had_the_chance(self, cycles: int = CHANCE_CYCLES) -> None:
+        """Evidence for a check that something did NOT happen: the driver
+        runs ``cycles`` more cycles (each sends the controlword, the cyclic
+        RxPDOs and, on this bus, the SYNC), then the simulated drive has
+        handled every frame they sent. A cycle publishes its snapshot
+        before it sends: cycle n+1's snapshot means cycle n has sent."""
+        start = self.driver.cycles
+        assert until(lambda: self.driver.cycles > start + cycles), (
+            "the driver ran %d of %d cycles" % (self.driver.cycles - start, cycles))
+        assert self.sim_ran(), "the simulator stands still"
 
     def close(self):
         if self.driver is not None:
@@ -163,17 +196,25 @@ def test_ppm_command_moves_the_joint_and_reaches_the_drive(rig):
 
 def test_set_and_get_object_round_trips(rig):
     d = ppm_ready(rig)
-    assert d.set_object(J1, "!!str 6081", "!!str 1000").success
-    assert rig.read(0x6081) == 1000
-    assert d.get_object(J1, "6081").value == "1000"
-    assert d.get_object("node1", "0x6081", True).value == "1000"
+    assert rig.read(0x6081) != 1500  # the DCF's 0x6081 (1000) is the old value
+    assert d.set_object(J1, "!!str 6081", "!!str 1500").success
+    assert rig.read(0x6081) == 1500
+    assert d.get_object(J1, "6081").value == "1500"
+    assert d.get_object("node1", "0x6081", True).value == "1500"
     assert d.set_object(J1, "6099sub02", "12").success
     assert rig.read(0x6099, 2) == 12
     assert d.get_object(J1, "6099sub2").value == "12"
     assert d.get_object(J1, "6099sub02", True).value == "12"
-    # 0x6081 rides in RxPDO 2 of this DCF: the PDO must not write the old value back
-    time.sleep(0.1)
-    assert rig.read(0x6081) == 1000
+    # 0x6081 rides in RxPDO 2 of this DCF (0x301: 0x607A, 0x6081): the PDO
+    # must not write the old value back. In PPM it is not cyclic: it goes
+    # out when a value in it changes and every REFRESH_CYCLES cycles. Wait
+    # for one sent after the write, and for the drive to have taken it in.
+    rig.drain()
+    assert until(lambda: rig.sent(0x301), REFRESH_WAIT)
+    rig.had_the_chance(2)  # its SYNC went out: the drive applied it
+    payloads = rig.sent(0x301)
+    assert [struct.unpack_from("<I", p, 4)[0] for p in payloads] == [1500] * len(payloads)
+    assert rig.read(0x6081) == 1500
 
 
 @pytest.mark.parametrize("call, match", [
@@ -213,7 +254,9 @@ def test_bad_commands_are_refused_and_never_reach_the_bus(rig):
     assert "unknown command kind" in d.set_command(J1, "torque", 1).message
     assert "unknown node" in d.set_command("x", "position", 0).message
     assert "not a finite number" in d.set_command(J1, "position", 10 ** 400).message
-    time.sleep(0.05)
+    # A command that got through would go out in the next cycle's RxPDO 2
+    # (0x301, 0x607A first): the driver's cycles and the drive had the chance.
+    rig.had_the_chance()
     assert rig.read(0x607A) == before
     assert all(int.from_bytes(data[:4], "little") == before for data in rig.sent(0x301))
     assert d.set_command(J1, "position", 0.5).success
@@ -278,7 +321,7 @@ def test_halt_bit_keeps_power_and_recover_does_not_jump(rig):
     assert until(lambda: rig.read(0x607A) == rig.read(0x6064))
     # (the simulated position loop settles a few dozen increments after standstill)
     assert abs(rig.read(0x607A) - stopped) < 500
-    time.sleep(0.2)
+    rig.had_the_chance()  # a drive that ran away would by now
     assert abs(rig.read(0x6064) - rig.read(0x607A)) < 50
 
 
@@ -289,10 +332,13 @@ def test_fault_emcy_then_recover(rig):
     assert "fault" in d.joints[J1].error
     assert until(lambda: "Following error" in d.status()[0]["last_emcy"])
     assert d.status()[0]["error_register"] != "0x00"
+    rig.drain()
     r = d.set_command(J1, "position", 10)
     assert not r.success and "recover" in r.message
-    time.sleep(0.1)
+    rig.had_the_chance()
     assert rig.state() == State.FAULT  # no automatic fault reset
+    words = [struct.unpack_from("<H", p)[0] for p in rig.sent(0x201)]
+    assert words and not any(w & 0x0080 for w in words), words  # the controlword never asked for one
     r = d.recover()
     assert r.success, r.message
     assert rig.state() == State.OPERATION_ENABLED and d.joints[J1].error is None
@@ -305,9 +351,11 @@ def test_shutdown_disables_stops_sync_and_nmt(rig):
     assert r.success, r.message
     assert rig.state() == State.SWITCH_ON_DISABLED
     assert b"\x02\x01" in rig.sent(0x000)  # NMT stop node 1
-    time.sleep(0.1)
+    # On this bus the cycle thread sends the SYNC and shutdown joined it:
+    # nothing is in flight. The simulator's clock then runs for several
+    # SYNC periods, with no SYNC on the bus.
     rig.drain()
-    time.sleep(0.1)
+    assert rig.sim_ran(CHANCE_CYCLES * SYNC_MS / 1000.0)
     assert rig.sent(0x080) == []  # SYNC stopped
     assert not d.halt().success and "not initialized" in d.halt().message
     r = d.init()  # and it comes back, in the mode it had

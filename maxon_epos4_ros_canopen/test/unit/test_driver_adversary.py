@@ -5,13 +5,25 @@ threads calling at the worst moment. What is checked is what the drive does
 on the bus."""
 import struct
 import threading
-import time
 
 import can
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
 from test_driver import DCF1, DCF2, J1, J2, Rig, ppm_ready, until
+
+# Rounds of calls each thread makes before and again after shutdown begins
+# (test_services_racing_shutdown_always_answer).
+RACE_ROUNDS = 5
+# The storm (test_eight_threads_storming_the_driver_lose_no_command): the
+# calls each thread makes and the driver's cycles meanwhile (about 12 s on
+# a 2-core host: the slowest thread, an SDO write, makes some 25 calls a
+# second, the cycle runs at about 85 Hz under the storm), and the bound
+# that only limits how long a storm that got stuck takes to fail.
+STORM_CALLS = 100
+STORM_CYCLES = 1000
+STORM_TIMEOUT = 180.0
+JOIN_TIMEOUT = 10.0   # a thread told to stop ends within one call
 
 
 @pytest.fixture
@@ -55,10 +67,14 @@ def test_forged_stopped_heartbeat_in_csp_holds_the_commanded_target(rig):
     start = rig.read(0x6064)
     assert d.set_command(J1, "position", start + 1000).success
     assert until(lambda: abs(rig.read(0x6064) - (start + 1000)) < 20)
+    rig.drain()
     forge(rig, 0x381, struct.pack("<ii", 798396, 0))
     forge(rig, 0x701, b"\x04")
     assert until(lambda: d.joints[J1].error is not None)
-    time.sleep(0.3)
+    rig.had_the_chance()  # to send the forged position as the target
+    # RxPDO 2 (0x301, 0x607A first) goes out every cycle in CSP
+    targets = [struct.unpack_from("<i", f)[0] for f in rig.sent(0x301)]
+    assert targets and set(targets) == {start + 1000}, set(targets)
     assert rig.read(0x607A) == start + 1000
     assert abs(rig.read(0x6064) - (start + 1000)) < 50
 
@@ -105,7 +121,7 @@ def test_one_forged_fault_statusword_does_not_cut_a_moving_drives_power(rig):
             break
     assert d.joints[J1].error is not None
     assert "fault" in d.joints[J1].error
-    time.sleep(0.2)
+    rig.had_the_chance()  # to disable the drive
     words = [struct.unpack_from("<H", f)[0] for f in rig.sent(0x201)]
     assert words and all(w & 0x000F == 0x000F for w in words)   # never disabled
     assert any(w & 0x0100 for w in words)                        # halted instead
@@ -151,9 +167,10 @@ def test_heartbeat_time_written_at_run_time_is_watched(rig):
 def test_services_racing_shutdown_always_answer(rig):
     d = ppm_ready(rig)
     answers, errors = [], []
+    rounds = [0, 0, 0]   # rounds of calls made by each thread
     stop = threading.Event()
 
-    def hammer():
+    def hammer(i):
         while not stop.is_set():
             try:
                 answers.append(d.get_object(J1, "6081"))
@@ -161,15 +178,21 @@ def test_services_racing_shutdown_always_answer(rig):
                 answers.append(d.set_command(J1, "position", 10 ** 400))
             except Exception as exc:  # the bug: a call that raises
                 errors.append(exc)
-    threads = [threading.Thread(target=hammer) for _ in range(3)]
+            rounds[i] += 1
+    threads = [threading.Thread(target=hammer, args=(i,)) for i in range(3)]
     for t in threads:
         t.start()
-    time.sleep(0.2)
-    r = d.shutdown()
-    time.sleep(0.2)
-    stop.set()
-    for t in threads:
-        t.join()
+    try:
+        # every thread is calling when shutdown begins, and calls on after it
+        assert until(lambda: min(rounds) >= RACE_ROUNDS), rounds
+        r = d.shutdown()
+        after = list(rounds)
+        assert until(lambda: all(n >= a + RACE_ROUNDS for n, a in zip(rounds, after))), (after, rounds)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(JOIN_TIMEOUT)
+    assert not any(t.is_alive() for t in threads)
     assert r.success, r.message
     assert errors == []
     assert all(hasattr(a, "success") for a in answers)
@@ -202,18 +225,24 @@ def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
         assert until(lambda: abs(rig.read(0x6064) - value) < 5)
 
 
-def test_eight_threads_for_15_seconds_lose_no_command(rig):
+def test_eight_threads_storming_the_driver_lose_no_command(rig):
+    """Five threads post commands and three call services, as fast as they
+    can, for a counted amount of work rather than a time: every thread
+    makes STORM_CALLS calls and the driver runs STORM_CYCLES cycles (each
+    cycle takes in what was posted meanwhile: the moments a command could
+    be lost). STORM_TIMEOUT only bounds how long a stuck storm takes."""
     d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
     assert d.init().success and d.switch_mode([J1, J2], 3).success
     order_lock = threading.Lock()
     last = {}
     errors, unanswered = [], []
+    calls = [0] * 8   # calls made by each thread
     stop = threading.Event()
     old_hook = threading.excepthook
     threading.excepthook = lambda args: errors.append(args.exc_value)
 
-    def commander(joint, seed):
-        n = seed
+    def commander(i, joint):
+        n = i
         while not stop.is_set():
             n = (n * 7 + 13) % 400
             value = n - 200
@@ -223,8 +252,9 @@ def test_eight_threads_for_15_seconds_lose_no_command(rig):
                     last[joint] = value
             if not hasattr(r, "success"):
                 unanswered.append(r)
+            calls[i] += 1
 
-    def caller(kind):
+    def caller(i, kind):
         while not stop.is_set():
             if kind == 0:
                 r = d.get_object(J1, "6081")
@@ -234,17 +264,23 @@ def test_eight_threads_for_15_seconds_lose_no_command(rig):
                 r = d.get_object(J2, "6041", True)
             if not (hasattr(r, "success") and r.success):
                 unanswered.append(r)
-    threads = [threading.Thread(target=commander, args=(J1 if i % 2 else J2, i)) for i in range(5)]
-    threads += [threading.Thread(target=caller, args=(k,)) for k in range(3)]
+            calls[i] += 1
+    threads = [threading.Thread(target=commander, args=(i, J1 if i % 2 else J2)) for i in range(5)]
+    threads += [threading.Thread(target=caller, args=(5 + k, k)) for k in range(3)]
     try:
+        start = d.cycles
         for t in threads:
             t.start()
-        time.sleep(15.0)
+        done = until(lambda: min(calls) >= STORM_CALLS and d.cycles - start >= STORM_CYCLES, STORM_TIMEOUT)
         stop.set()
         for t in threads:
-            t.join(10.0)
+            t.join(JOIN_TIMEOUT)
     finally:
+        stop.set()
         threading.excepthook = old_hook
+    assert done, "storm not done in %.0f s: calls per thread %s, %d cycles" % (
+        STORM_TIMEOUT, calls, d.cycles - start)
+    assert not any(t.is_alive() for t in threads)
     assert errors == [] and unanswered == []
     assert until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
         last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2),
