@@ -28,11 +28,18 @@ CONTROLLER = "joint_trajectory_controller"
 _channels = itertools.count()
 
 
+# flush()'s marker: an identifier none of the rig's services or PDOs uses
+# (the simulator and the driver take no notice of it).
+MARKER = 0x6C0
+
+
 class Listener:
     """Every frame on the channel, with its arrival time (time.monotonic())."""
 
     def __init__(self, channel: str) -> None:
         self.bus = can.Bus(interface="virtual", channel=channel)
+        self._marker_bus = can.Bus(interface="virtual", channel=channel)
+        self._markers = itertools.count()
         self.frames: List[can.Message] = []
         self.arrivals: List[float] = []
         self._run = True
@@ -50,10 +57,24 @@ class Listener:
         frames, self.frames, self.arrivals = self.frames, [], []
         return frames
 
+    def flush(self, timeout: float) -> bool:
+        """Wait until every frame sent before this call is in ``frames``:
+        a marker frame sent now is received after them (the virtual bus
+        keeps each receiver's frames in order). False after ``timeout`` s."""
+        data = next(self._markers).to_bytes(4, "little")
+        self._marker_bus.send(can.Message(arbitration_id=MARKER, data=data, is_extended_id=False))
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if any(f.arbitration_id == MARKER and bytes(f.data) == data for f in reversed(self.frames)):
+                return True
+            time.sleep(0.005)
+        return False
+
     def close(self) -> None:
         self._run = False
         self._thread.join(timeout=2)
         self.bus.shutdown()
+        self._marker_bus.shutdown()
 
 
 class CspRig:
