@@ -11,6 +11,9 @@ from test_sim_support import NODE1, NODE2, NodeConfig, RampRecorder, Rig, spin_u
 
 MASTER = 0x7F
 TIMEOUT_MS = 100
+# The stall of the simulating host that test_a_stall_of_the_simulating_process_
+# is_no_silence_of_the_master models: three consumer times.
+HOST_STALL = 3 * TIMEOUT_MS / 1000.0
 HEARTBEAT_LOST = struct.pack("<HB5s", 0x8130, 0x11, bytes(5))  # generic + communication
 QUICK_STOP_DECEL = 2000  # rpm/s
 PROFILE_DECEL = 6000
@@ -317,7 +320,11 @@ def test_a_stall_of_the_simulating_process_is_no_silence_of_the_master(rig):
         passes.append(len(passes))
         if len(passes) == 1:
             master.stop()
-            time.sleep(0.3)  # the host stood still: no heartbeat, no loop
+            # The stall itself, on purpose (not a wait for anything): the
+            # simulator's loop stands still for longer than the 100 ms
+            # consumer time. A loaded host only makes it longer, which is
+            # the case under test.
+            time.sleep(HOST_STALL)
             return None
         if len(passes) == 2:
             rig.raw.send(heartbeat)  # the heartbeat due during the stall, sent on resuming
