@@ -47,10 +47,15 @@ def test_simulator_traffic_decodes_to_states_objects_and_values():
         with pytest.raises(Exception):
             node.sdo.upload(0x5FFF, 0)                  # abort: object does not exist
         node.nmt.state = "OPERATIONAL"                  # NMT start node 1 (the observer hears the client)
-        frames = rig.collect(0.3)
+        frames = []
+
+        def seen(cob_id, data=None):
+            frames.extend(rig.collect(0.01))
+            return any(f.arbitration_id == cob_id and data in (None, bytes(f.data)) for f in frames)
+        assert rig.wait(lambda: seen(0x701, b"\x05"))  # the drive says it is operational
         rig.net.sync.transmit()                         # SYNC: the synchronous TPDOs answer
         rig.sim.inject_fault(1, "emcy", error_code=0x8611)
-        frames += rig.collect(1.0)
+        assert rig.wait(lambda: seen(0x181) and seen(0x081))
     finally:
         rig.close()
     d = mon.Decoder({1: mon.load_dictionary(NODE1, 1)})

@@ -23,7 +23,7 @@ def test_ppm_needs_new_set_point_edge(rig):
     start = node.sdo[0x6064].raw
     assert sw(node) & 0x0400  # idle: target reached
     node.sdo[0x607A].raw = start + 2000
-    rig.collect(0.3)
+    rig.handled(0.3)
     assert abs(node.sdo[0x6064].raw - start) < 5  # no edge, no motion
     node.sdo[0x6040].raw = 0x001F
     assert sw(node) & 0x1400 == 0x1000  # acknowledged, not reached
@@ -152,7 +152,7 @@ def test_homing_minus3_current_threshold_against_hard_stop():
         node.sdo[0x6060].raw = 1
         node.sdo[0x607A].raw = 800
         node.sdo[0x6040].raw = 0x003F  # bit 4 still high from homing: no edge, no move
-        r.collect(0.2)
+        r.handled(0.2)
         assert node.sdo[0x6062].raw == 0
         node.sdo[0x6040].raw = 0x000F
         node.sdo[0x6040].raw = 0x003F
@@ -189,7 +189,7 @@ def test_csp_target_without_sync_is_not_applied(rig):
     enable(node, 8)
     start = node.sdo[0x6064].raw
     node.sdo[0x607A].raw = start + 500
-    rig.collect(0.2)
+    rig.handled(0.2)
     assert node.sdo[0x6062].raw == start
 
 
@@ -246,7 +246,7 @@ def test_homing_minus4_needs_the_current_threshold():
         node.sdo[0x6040].raw = 0x001F
         # pressed against the stop at the current limit
         assert r.wait(lambda: node.sdo[0x6064].raw <= -1499 and abs(node.sdo[0x30D1][1].raw) >= 9000)
-        r.collect(0.5)
+        r.handled(0.5)
         assert sw(node) & 0x1000 == 0  # still searching: not attained
         node.sdo[0x30B2].raw = 1500
         assert r.wait(lambda: sw(node) & 0x1000)

@@ -2,6 +2,7 @@
 ``virtual`` channel, an independent canopen client and a raw-frame observer.
 (No tests here; the name only keeps the file among the simulator's tests.)"""
 import itertools
+import math
 import os
 import struct
 import sys
@@ -67,6 +68,22 @@ class Rig:
             if msg is not None and match(msg):
                 return msg
         return None
+
+    def handled(self, seconds: float = 0.0, timeout: float = 10.0) -> List[can.Message]:
+        """Evidence for a check that a drive did NOT do something: wait
+        until the simulator has handled every frame sent before this call
+        and its clock ran on for at least ``seconds`` (counted in its loop's
+        ticks, Simulator.ticks: two more than the period needs), then the
+        frames the observer saw meanwhile: everything the nodes sent."""
+        start = self.sim.ticks
+        ticks = 2 + int(math.ceil(seconds / self.sim.tick_period))
+        assert self.wait(lambda: self.sim.ticks >= start + ticks, timeout), "the simulator stands still"
+        frames = []
+        msg = self.raw.recv(timeout=0)
+        while msg is not None:
+            frames.append(msg)
+            msg = self.raw.recv(timeout=0)
+        return frames
 
     def collect(self, seconds: float) -> List[can.Message]:
         end, frames = time.monotonic() + seconds, []
