@@ -11,6 +11,15 @@ from test_sim_support import NODE1, NODE2, NodeConfig, RampRecorder, Rig, spin_u
 
 MASTER = 0x7F
 TIMEOUT_MS = 100
+# test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
+# arrived: the consumer time there, and the SYNCs queued behind each of the
+# master's heartbeats (the starved loop takes 2 ms for each: 600 ms, more
+# than the consumer time, between two heartbeats). The heartbeats go out a
+# few ms apart; a host would have to hold the sending thread for nearly the
+# consumer time to make that a real loss (the test checks it did not).
+BEHIND_CONSUMER_MS = 500
+BEHIND_SYNCS = 300
+BEHIND_HEARTBEATS = 4
 # The stall of the simulating host that test_a_stall_of_the_simulating_process_
 # is_no_silence_of_the_master models: three consumer times.
 HOST_STALL = 3 * TIMEOUT_MS / 1000.0
@@ -37,8 +46,8 @@ class Master:
         self.task.stop()
 
 
-def _watch_master(node, sub=1):
-    node.sdo[0x1016][sub].raw = (MASTER << 16) | TIMEOUT_MS
+def _watch_master(node, sub=1, timeout_ms=TIMEOUT_MS):
+    node.sdo[0x1016][sub].raw = (MASTER << 16) | timeout_ms
 
 
 def _is_emcy(msg, node_id=1):
@@ -253,20 +262,20 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     """A real drive never falls behind the bus; the simulating process can,
     on a loaded host, with frames waiting in its socket. Its consumer must
     judge by when each heartbeat reached it, not by when its loop got to
-    it: the master's heartbeats, 20 ms apart on the bus, must not count as
-    a master loss because the SYNCs queued between them took the loop
+    it: the master's heartbeats, a few ms apart on the bus, must not count
+    as a master loss because the SYNCs queued between them took the loop
     longer than the consumer time to work through. A master that really
-    stops is still noticed."""
-    import threading
+    stops is still noticed. (The master's heartbeats go on until the loop
+    has caught up and the test has looked: the EMCY of the master that
+    stops at the end cannot be taken for one during the backlog.)"""
     import time
 
     node = rig.remote(1)
-    _watch_master(node)  # 100 ms
+    _watch_master(node, timeout_ms=BEHIND_CONSUMER_MS)
     master = Master(rig)
     spin_up(node, rig)
     rig.send(0x000, bytes([0x01, 1]))  # operational: every SYNC advances the drive
     assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
-    master.stop()
     handle = rig.sim.handle
 
     def slow_handle(msg, now):  # a starved loop: 2 ms for every frame
@@ -275,25 +284,29 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     rig.sim.handle = slow_handle
     heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
-    for _ in range(15):  # each SYNC advances the drive; 60 of them = 120 ms of work per heartbeat
+    before, after = [], []   # time.time() around each heartbeat's send (the bus stamps it in between)
+    start = rig.sim.frames_in
+    for i in range(BEHIND_HEARTBEATS + 1):
+        before.append(time.time())
         rig.raw.send(heartbeat)
-        for _ in range(60):
+        after.append(time.time())
+        if i == 0:
+            master.stop()  # from here on this thread sends the heartbeats, each behind the SYNCs
+        if i == BEHIND_HEARTBEATS:
+            break
+        for _ in range(BEHIND_SYNCS):  # each SYNC advances the drive
             rig.raw.send(sync)
-        time.sleep(0.02)
-    rig.raw.send(heartbeat)
-    # the loop works through its backlog; then the heartbeats stop for real
-    caught_up = threading.Event()
-    rig.sim.call(caught_up.set, timeout=60.0)
-    assert caught_up.is_set()
+    master = Master(rig)  # the heartbeats go on (the first at once) while the loop works off its backlog
+    sent = BEHIND_HEARTBEATS * (BEHIND_SYNCS + 1) + 1
+    gaps = [b - a for a, b in zip(before, after[1:])]
+    assert max(gaps) < BEHIND_CONSUMER_MS / 1000.0, (
+        "the host held this thread %.0f ms between two heartbeats: a real loss of the master" % (max(gaps) * 1000))
+    assert rig.wait(lambda: rig.sim.frames_in >= start + sent, timeout=60.0)  # the loop worked off its backlog
     rig.sim.handle = handle
     assert rig.sim.read(1, 0x6041) & 0x6F == 0x27, "the drive left operation enabled"
-    emcys = []
-    while True:
-        msg = rig.raw.recv(timeout=0)
-        if msg is None:
-            break
-        emcys += [msg] if _is_emcy(msg) else []
+    emcys = [m for m in rig.handled() if _is_emcy(m)]
     assert not emcys, "EMCY 0x8130 while the master's heartbeats were on the bus"
+    master.stop()
     assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"
 
 
