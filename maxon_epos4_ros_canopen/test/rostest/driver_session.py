@@ -23,6 +23,11 @@ from maxon_epos4_ros_canopen.can_device import enlarge_receive_buffer
 
 CLI_TIMEOUT = 120.0  # user-mode Linux runs ROS tools 6-10x slower than native
 WAIT = 90.0
+DRIVER_NODE = "/maxon/canopen_motor"
+# The driver node warns of a refused command at most once a second
+# (rospy.logwarn_throttle in nodes/canopen_motor_node, CanopenMotorNode._command).
+REFUSAL_WARNING_PERIOD = 1.0
+SYNC_COB_ID = 0x080
 
 
 def run(args: Sequence[str], timeout: float = CLI_TIMEOUT) -> subprocess.CompletedProcess:
@@ -239,6 +244,20 @@ class BusRecorder:
                 with self._lock:
                     self.frames.append(msg)
 
+    def wait_for(self, match: Callable[[can.Message], bool], what: str, count: int = 1,
+                 timeout: float = WAIT) -> List[can.Message]:
+        """The first `count` frames recorded since start() that `match`,
+        once the recorder has them (fails after `timeout`)."""
+        found: List[can.Message] = []
+
+        def enough() -> bool:
+            with self._lock:
+                found[:] = [f for f in self.frames if match(f)]
+            return len(found) >= count
+
+        wait_until(enough, what, timeout)
+        return found[:count]
+
     def stop(self) -> List[can.Message]:
         self._running = False
         if self._thread is not None:
@@ -257,6 +276,115 @@ class BusRecorder:
     def close(self) -> None:
         self._running = False
         self.bus.shutdown()
+
+
+def wait_for_syncs(device: str, count: int = 2) -> None:
+    """Return once `count` SYNC frames were on the bus after this call.
+
+    With the shipped bus layer (sync/interval_ms == update_ms, no
+    kernel_timer) the driver's cycle sends SYNC itself, last, after the
+    RxPDOs of the commands it drained from its inbox. The first SYNC seen
+    may end a cycle that began before this call; the second ends one that
+    began after it. So whatever the driver had queued before this call is
+    on the bus by then, and the drives, which handle frames in bus order,
+    have it before any SDO request sent afterwards."""
+    # A fresh socket: it holds only frames sent after it was opened.
+    recorder = BusRecorder(device, can_filters=[{"can_id": SYNC_COB_ID, "can_mask": 0x7FF, "extended": False}])
+    try:
+        recorder.start()
+        recorder.wait_for(lambda f: f.arbitration_id == SYNC_COB_ID, "%d SYNC frames on %s" % (count, device),
+                          count=count)
+    finally:
+        recorder.stop()
+        recorder.close()
+
+
+class NodeLog:
+    """The lines one node sends to /rosout, in the order they arrive. Some
+    inputs the node answers only in its log (a refused command on a
+    <controller>/command topic): the line is the evidence that the node
+    handled the input."""
+
+    def __init__(self, node: str = DRIVER_NODE) -> None:
+        from rosgraph_msgs.msg import Log
+        self.node = node
+        self._lock = threading.Lock()
+        self._lines: List[Any] = []
+        self._sub = rospy.Subscriber("/rosout", Log, self._cb, queue_size=1000)
+
+    def _cb(self, msg: Any) -> None:
+        if msg.name == self.node:
+            with self._lock:
+                self._lines.append(msg)
+
+    def mark(self) -> int:
+        """A position in the log: wait_for(..., since=mark()) sees only later lines."""
+        with self._lock:
+            return len(self._lines)
+
+    def last(self, condition: Callable[[str], bool]) -> Optional[Any]:
+        """The latest line (rosgraph_msgs/Log) whose text meets `condition`, or None."""
+        with self._lock:
+            return next((m for m in reversed(self._lines) if condition(m.msg)), None)
+
+    def wait_for(self, condition: Callable[[str], bool], what: str, since: int = 0,
+                 timeout: float = WAIT) -> Any:
+        """The first line after position `since` whose text meets `condition`."""
+        found: List[Any] = []
+
+        def arrived() -> bool:
+            with self._lock:
+                found[:] = [m for m in self._lines[since:] if condition(m.msg)]
+            return bool(found)
+
+        try:
+            wait_until(arrived, what, timeout)
+        except AssertionError:
+            with self._lock:
+                recent = [m.msg for m in self._lines[since:]][-10:]
+            raise AssertionError("timed out waiting for %s; the node's lines since: %r" % (what, recent))
+        return found[0]
+
+
+def is_refusal(text: str) -> bool:
+    """A line of the driver node's warning of a refused <controller>/command."""
+    return "/command [" in text and "] refused: " in text
+
+
+class CommandRefusals:
+    """Commands the driver node must refuse, sent and waited on until the
+    node demonstrably handled them.
+
+    A refused command changes nothing, so there is no change to wait for;
+    the node's warning "<controller>/command [values] refused: reason" on
+    /rosout is what shows it took the command in and refused it. After the
+    warning, wait_for_syncs() lets the cycle run: a command the node had
+    queued all the same would then be in the drive, and the test's own
+    check of the drive (an SDO read) would see it."""
+
+    def __init__(self, device: str, log: Optional[NodeLog] = None) -> None:
+        self.device = device
+        self.log = log if log is not None else NodeLog()
+
+    def refuse(self, controller: str, values: str, reason: str, send: Callable[[], None]) -> str:
+        """send() a command the node must refuse; return the node's warning
+        once it named `values` (as the node prints the list, e.g. "[nan]",
+        "[7.0]") and `reason`, and the cycle ran after it."""
+        # The warning is throttled: one sent within REFUSAL_WARNING_PERIOD
+        # of the previous one (by the node's clock, which stamped it) would
+        # not be logged, and this would wait in vain.
+        previous = self.log.last(is_refusal)
+        if previous is not None:
+            quiet_from = previous.header.stamp.to_sec() + REFUSAL_WARNING_PERIOD
+            wait_until(lambda: time.time() > quiet_from, "the node's refusal warning throttle to let a warning through")
+        since = self.log.mark()
+        send()
+        head = "%s/command %s refused: " % (controller, values)
+        line = self.log.wait_for(lambda text: text.startswith(head), "the node's warning '%s...'" % head, since)
+        if reason not in line.msg:
+            raise AssertionError("refused for another reason than %r: %s" % (reason, line.msg))
+        wait_for_syncs(self.device)
+        return line.msg
 
 
 class JointStates:

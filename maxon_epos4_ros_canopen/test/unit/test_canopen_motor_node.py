@@ -11,6 +11,7 @@ manager, topics, diagnostics, bad input) without SocketCAN.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import socket
@@ -19,7 +20,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
-from typing import Any, Dict, List, Sequence
+from typing import Any, Callable, Dict, List, Sequence
 
 import pytest
 import yaml
@@ -31,6 +32,15 @@ CM_PKG = REPO / "compat" / "controller_manager"
 POS_CTRL = "/maxon/canopen_motor/base_link1_joint_position_controller"
 VEL_CTRL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
 JOINT = "base_link1_joint"
+WAIT = 60.0  # generous: the node, a CLI tool per step and a loaded host
+CLI_TIMEOUT = 60.0
+# The node warns of a refused command at most once a second
+# (rospy.logwarn_throttle in nodes/canopen_motor_node, CanopenMotorNode._command).
+REFUSAL_WARNING_PERIOD = 1.0
+# rospy's console format (its default, set so the node's log lines carry
+# their time whatever the caller's environment says)
+LOG_FORMAT = "[${severity}] [${time}]: ${message}"
+REFUSAL_LINE = re.compile(r"^\[WARN\] \[([0-9.]+)\]: (\S+/command \[.*\] refused: .*)$", re.M)
 
 if shutil.which("roscore") is None or shutil.which("rosservice") is None:
     pytest.fail("ROS 1 command-line tools (roscore, rosservice) are not installed: run tools/setup.sh",
@@ -54,6 +64,7 @@ class Session:
         self.env["ROS_MASTER_URI"] = "http://localhost:%d" % free_port()
         self.env["ROS_LOG_DIR"] = str(tmp / "log")
         self.env["ROS_HOSTNAME"] = "localhost"
+        self.env["ROSCONSOLE_FORMAT"] = LOG_FORMAT
         self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), str(CM_PKG / "src"),
                                                   self.env.get("PYTHONPATH", "")])
         self.tmp = tmp
@@ -66,7 +77,7 @@ class Session:
         self.procs.append(proc)
         return proc
 
-    def run(self, *args: str, timeout: float = 60.0) -> subprocess.CompletedProcess:
+    def run(self, *args: str, timeout: float = CLI_TIMEOUT) -> subprocess.CompletedProcess:
         return subprocess.run(list(args), env=self.env, capture_output=True, text=True, timeout=timeout)
 
     def call(self, *args: str) -> Dict[str, Any]:
@@ -74,7 +85,7 @@ class Session:
         assert proc.returncode == 0, "rosservice call %s: %s %s" % (args, proc.stdout, proc.stderr)
         return yaml.safe_load(proc.stdout)
 
-    def wait(self, condition, what: str, timeout: float = 30.0) -> None:
+    def wait(self, condition: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if condition():
@@ -83,8 +94,48 @@ class Session:
         raise AssertionError("timed out waiting for %s; node log:\n%s" % (what, self.log("node.log")))
 
     def log(self, name: str) -> str:
+        return self.text(name)[-4000:]
+
+    def text(self, name: str) -> str:
         path = self.tmp / name
-        return path.read_text()[-4000:] if path.exists() else ""
+        return path.read_text() if path.exists() else ""
+
+    def refusals(self) -> List[Any]:
+        """The node's refused-command warnings so far (re matches: stamp, text)."""
+        return list(REFUSAL_LINE.finditer(self.text("node.log")))
+
+    def refuse(self, values: str, reason: str, send: Callable[[], None]) -> str:
+        """send() a command the node must refuse; return the node's warning
+        "<controller>/command VALUES refused: ..." once it is in the node's
+        log and names `reason`, and the driver's cycle ran after it.
+
+        A refused command changes nothing, so there is nothing to wait for
+        but the warning: it shows the node took the command in and refused
+        it. After it, the simulator's `sync` answer (node_with_sim.py) says
+        a whole cycle ran: a command the node had queued all the same would
+        then be in the drive, where the caller's SDO read sees it."""
+        previous = self.refusals()
+        if previous:
+            # throttled: a warning within REFUSAL_WARNING_PERIOD of the
+            # previous one (by the node's clock, which stamped it) would not
+            # be logged, and this would wait in vain
+            quiet_from = float(previous[-1].group(1)) + REFUSAL_WARNING_PERIOD
+            self.wait(lambda: time.time() > quiet_from, "the node's refusal warning throttle to let a warning through")
+        count = len(previous)
+        send()
+        found: List[str] = []
+
+        def warned() -> bool:
+            found[:] = [m.group(2) for m in self.refusals()[count:] if "/command %s refused: " % values in m.group(2)]
+            return bool(found)
+
+        self.wait(warned, "the node's warning that it refused %s" % values)
+        assert reason in found[0], "refused for another reason than %r: %s" % (reason, found[0])
+        token = uuid.uuid4().hex[:8]
+        self.node.stdin.write("sync %s\n" % token)
+        self.node.stdin.flush()
+        self.wait(lambda: "synced %s" % token in self.text("node.log"), "two SYNCs after the refusal")
+        return found[0]
 
     def alive(self, proc: subprocess.Popen) -> bool:
         return proc.poll() is None
@@ -250,24 +301,32 @@ def test_06_bad_requests_are_answered(session, args, mention):
     assert session.alive(session.node)
 
 
+def publish_once(session: Session, value: str) -> None:
+    """`rostopic pub -1` of one position command, as the user types it."""
+    proc = session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", value)
+    assert proc.returncode == 0, proc.stderr
+
+
 def test_07_non_finite_commands_do_not_reach_the_drive(session):
     before = get_value(session, "607A")
-    for bad in (".nan", "-.inf"):  # YAML spellings: rostopic sends "nan" as a string
-        assert session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--",
-                           bad).returncode == 0
-    time.sleep(0.5)
-    assert get_value(session, "607A") == before
+    # Each one until the node's warning names it and a cycle ran after it
+    # (Session.refuse): a valid marker command after it would overwrite a
+    # target it had set, and hide it. YAML spellings: rostopic sends "nan"
+    # as a string.
+    for bad, shown in ((".nan", "[nan]"), ("-.inf", "[-inf]")):
+        session.refuse(shown, "not a finite number", lambda bad=bad: publish_once(session, bad))
+        assert get_value(session, "607A") == before, "a non-finite command (%s) reached the drive" % bad
     assert session.alive(session.node)
-    assert "not a finite number" in session.log("node.log")
 
 
 def test_08_halt_refuses_commands_recover_resumes(session):
     assert session.call("/maxon/driver/halt")["success"]
     assert int(get_value(session, "6040"), 0) & 0x000F == 0x0002  # quick stop, as ros_canopen
     before = get_value(session, "607A")
-    session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "5000")
-    time.sleep(0.5)
-    assert get_value(session, "607A") == before
+    # no valid command exists while halted to mark the topic with: the
+    # node's refusal warning is the evidence it took the command in
+    session.refuse("[5000.0]", "is halted", lambda: publish_once(session, "5000"))
+    assert get_value(session, "607A") == before, "a command while halted reached the drive"
     assert session.call("/maxon/driver/recover")["success"]
     assert not int(get_value(session, "6040"), 0) & 0x0100
     session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "2000")
@@ -298,9 +357,9 @@ def test_09b_emcy_is_decoded_logged_and_on_diagnostics_recover_clears_it(session
 
     session.wait(in_error, "diagnostics to report the EMCY as an error")
     session.wait(lambda: "EMCY 0x8611 Following error" in session.log("node.log"), "the EMCY in the node's log")
-    proc = session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "3000")
-    assert proc.returncode == 0
-    assert get_value(session, "607A") != "3000"  # refused while in fault
+    # refused while in fault: read the drive once the node said so and a cycle ran
+    session.refuse("[3000.0]", "is in error", lambda: publish_once(session, "3000"))
+    assert get_value(session, "607A") != "3000", "a command while in fault reached the drive"
     assert session.call("/maxon/driver/recover")["success"]
     session.wait(lambda: diagnostics(session)[0]["level"] == 0, "diagnostics back to OK after recover")
     assert int(get_value(session, "6041"), 0) & 0x6F == 0x27
