@@ -28,7 +28,7 @@ from typing import Callable, List, Optional
 PKG = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(PKG / "src"), str(PKG / "test" / "unit")]  # the core, and csp_rig shared with the tests
 
-from csp_rig import JOINTS, CspRig  # noqa: E402
+from csp_rig import JOINTS, CspRig, wait as rig_wait  # noqa: E402
 
 from maxon_epos4_ros_canopen import trajectory as tj  # noqa: E402
 from maxon_epos4_ros_canopen.trajectory import TrajectoryPoint  # noqa: E402
@@ -37,12 +37,7 @@ STEP_TIMEOUT = 30.0  # s for one step (a goal, recover) before the round counts 
 
 
 def wait(condition: Callable[[], bool], timeout: float = STEP_TIMEOUT) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return False
+    return rig_wait(condition, timeout)
 
 
 def drives(rig: CspRig) -> str:

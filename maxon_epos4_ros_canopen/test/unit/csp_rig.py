@@ -33,6 +33,16 @@ _channels = itertools.count()
 MARKER = 0x6C0
 
 
+def wait(condition: Callable[[], bool], timeout: float) -> bool:
+    """Poll ``condition`` until it holds (True) or ``timeout`` s passed (False)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.01)
+    return False
+
+
 class Listener:
     """Every frame on the channel, with its arrival time (time.monotonic())."""
 

@@ -6,14 +6,13 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from pathlib import Path
 from typing import List, Tuple
 
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # csp_rig beside this file (any import mode)
-from csp_rig import JOINTS as J, CspRig, Listener  # noqa: E402
+from csp_rig import JOINTS as J, CspRig, Listener, wait as rig_wait  # noqa: E402
 
 from maxon_epos4_ros_canopen import trajectory as tj  # noqa: E402
 from maxon_epos4_ros_canopen.driver import Driver  # noqa: E402
@@ -50,12 +49,7 @@ def rig():
 
 
 def wait(condition, timeout=TIMEOUT) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return False
+    return rig_wait(condition, timeout)
 
 
 def caught_up(sim: Simulator) -> bool:
