@@ -28,6 +28,9 @@ CONTROLLER = "joint_trajectory_controller"
 _channels = itertools.count()
 
 
+MASTER_CONSUMER_2S = "0x007F07D0"  # 0x1016 entry: node 0x7F, 2000 ms
+
+
 # flush()'s marker: an identifier none of the rig's services or PDOs uses
 # (the simulator and the driver take no notice of it).
 MARKER = 0x6C0
@@ -100,6 +103,11 @@ class CspRig:
         for name in ("canopen_bus_layer.yaml", "controller_2dof_csp.yaml", "node_layer_2dof_csp.yaml"):
             self.params.update(yaml.safe_load((CONFIG / name).read_text()))
         self.params["bus"]["device"] = "virtual:" + self.channel
+        # The drives watch the master's heartbeat for 2 s, not the 150 ms init
+        # derives from the example's 20 Hz: in one process on a loaded host the
+        # heartbeat thread can wait for the GIL that long, and the drives
+        # would then rightly stop (test_driver.py's rig does the same).
+        self.params["defaults"]["dcf_overlay"]["1016sub1"] = MASTER_CONSUMER_2S
         if adjust is not None:
             adjust(self.params)
         self.driver = Driver(load_config(self.params, "csp_rig", lambda pkg: str(PKG)))
