@@ -19,7 +19,7 @@ DEBIAN_PACKAGES=(
   python3-trajectory-msgs python3-diagnostic-msgs python3-diagnostic-updater
   python3-tf2-ros catkin ros-message-generation ros-message-runtime
   python3-genpy python3-genmsg rosbash python3-catkin-pkg python3-rospkg
-  ros-robot-state-publisher can-utils
+  ros-robot-state-publisher can-utils joint-state-publisher
   ros-trajectory-msgs libtrajectory-msgs-dev ros-actionlib-msgs libactionlib-msgs-dev
   ros-sensor-msgs libsensor-msgs-dev ros-std-srvs libstd-srvs-dev
   ros-geometry-msgs libgeometry-msgs-dev ros-nav-msgs libnav-msgs-dev
@@ -73,6 +73,37 @@ if [ ! -x .venv/bin/python ] || [ "$(cat .venv/.requirements.sha256 2>/dev/null)
   echo "$req_hash" > .venv/.requirements.sha256
 else
   log ".venv: up to date"
+fi
+
+# --- 2b. Python 3.8 (ROS Noetic's) for the ROS-free unit tests ---------------
+# Wherever a 3.8 interpreter exists (PYTHON38, python3.8 on PATH or pyenv's),
+# .venv38 gets the same requirements (their markers pick python-can 4.5
+# there); tools/run_tests.sh runs the ROS-free unit tests with it, so that
+# code a Noetic robot cannot run fails here first. No ROS in it.
+find_python38() {
+  local candidate
+  for candidate in "${PYTHON38:-}" "$(command -v python3.8 || true)" \
+      "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.8*/bin/python /root/.pyenv/versions/3.8*/bin/python; do
+    [ -n "$candidate" ] && [ -x "$candidate" ] || continue
+    "$candidate" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 8))' 2>/dev/null && { echo "$candidate"; return 0; }
+  done
+  return 1
+}
+if py38=$(find_python38); then
+  if [ ! -x .venv38/bin/python ] || [ "$(cat .venv38/.requirements.sha256 2>/dev/null)" != "$req_hash" ]; then
+    log "creating .venv38 from $py38 for the ROS-free unit tests"
+    rm -rf .venv38
+    if "$py38" -m venv .venv38 && .venv38/bin/pip install -q --disable-pip-version-check -r requirements.txt; then
+      echo "$req_hash" > .venv38/.requirements.sha256
+    else
+      log ".venv38 could not be made: the Python 3.8 run of the unit tests will report that"
+      rm -rf .venv38
+    fi
+  else
+    log ".venv38: up to date"
+  fi
+else
+  log "no Python 3.8 interpreter: the ROS-free unit tests run under $("$SYS_PY" -V 2>&1) only"
 fi
 
 # --- 3. catkin workspace ------------------------------------------------------

@@ -4,7 +4,8 @@ the end-to-end rostest suite (see tools/e2e_suite.sh for the layout).
 
     testreport.py --pytest FILE.xml --e2e RESULTS_DIR [--e2e-expected N]
 
-Prints the failed tests, a count per suite and, last, the closing line
+Prints the 10 slowest files and the 10 slowest test cases with their
+seconds, the failed tests, a count per suite and, last, the closing line
 "N passed, N failed". Exit status 0 only when nothing failed and every
 expected suite ran.
 
@@ -21,7 +22,7 @@ import os
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
-from typing import List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 
 @dataclass
@@ -117,19 +118,110 @@ def tally_e2e(results: str, expected: Optional[int] = None) -> Tally:
     return t
 
 
+def python38_line(paths: List[str], absent: bool) -> Tally:
+    """The ROS-free unit tests under Python 3.8 (ROS Noetic's), on a line of their own."""
+    t = Tally()
+    for path in paths:
+        t.add(tally_junit(path, "pytest (Python 3.8)"))
+    if paths:
+        print("ROS-free unit tests under Python 3.8: %d passed, %d failed, %d skipped" % (
+            t.passed, t.failed, t.skipped))
+    elif absent:
+        print("ROS-free unit tests under Python 3.8: not run (no Python 3.8 interpreter)")
+    return t
+
+
+# --- the slowest files and tests ---------------------------------------------
+
+def _case_times(path: str) -> List[Tuple[str, str, float]]:
+    """(file, test, seconds) of every testcase with a time in a JUnit file."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    out = []
+    for case in root.iter("testcase"):
+        try:
+            secs = float(case.get("time") or "")
+        except ValueError:
+            continue
+        classname = case.get("classname", "")
+        # pytest: "pkg.test.unit.test_x.TestClass" or "test_x"; the file is the test_* part
+        parts = classname.split(".")
+        module = next((p for p in parts if p.startswith("test_")), classname)
+        out.append((module + ".py" if module.startswith("test_") else module,
+                    "%s.%s" % (classname, case.get("name", "")), secs))
+    return out
+
+
+def timings(pytest_files: Sequence[str], e2e: Optional[str]) -> Tuple[List[Tuple[str, float]],
+                                                                      List[Tuple[str, float]]]:
+    """(file, seconds) and (test, seconds) of both suites. A pytest file's
+    seconds are the sum of its cases; a rostest file's are its wall time in
+    the manifest (start-up included); its cases are "<file>: <case>"."""
+    files: Dict[str, float] = {}
+    tests: List[Tuple[str, float]] = []
+    for path in pytest_files:
+        for module, case, secs in _case_times(path):
+            files["pytest " + module] = files.get("pytest " + module, 0.0) + secs
+            tests.append(("pytest " + case, secs))
+    if e2e:
+        for pkg, test_file, secs in _manifest_times(e2e):
+            label = "e2e %s/%s" % (pkg, test_file)
+            files[label] = secs
+            xml_dir = os.path.join(e2e, "xml", "%s.%s" % (pkg, test_file))
+            for path in sorted(glob.glob(os.path.join(xml_dir, "**", "rosunit-*.xml"), recursive=True)):
+                for _, case, case_secs in _case_times(path):
+                    tests.append(("%s: %s" % (label, case.split(".")[-1]), case_secs))
+    by_time = lambda item: (-item[1], item[0])  # noqa: E731
+    return sorted(files.items(), key=by_time), sorted(tests, key=by_time)
+
+
+def _manifest_times(results: str) -> List[Tuple[str, str, float]]:
+    manifest = os.path.join(results, "manifest")
+    if not os.path.exists(manifest):
+        return []
+    out = []
+    with open(manifest) as f:
+        for line in f:
+            entry = line.split()
+            if len(entry) >= 4:
+                try:
+                    out.append((entry[0], entry[1], float(entry[3])))
+                except ValueError:
+                    pass
+    return out
+
+
+def print_slowest(pytest_files: Sequence[str], e2e: Optional[str], count: int = 10) -> None:
+    files, tests = timings(pytest_files, e2e)
+    for title, rows in (("files", files), ("tests", tests)):
+        if not rows:
+            continue
+        print("the %d slowest %s:" % (min(count, len(rows)), title))
+        for name, secs in rows[:count]:
+            print("  %8.1f s  %s" % (secs, name))
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pytest", action="append", default=[], help="pytest JUnit XML file")
     ap.add_argument("--e2e", help="end-to-end results folder (tools/e2e_suite.sh)")
     ap.add_argument("--e2e-expected", type=int, help="number of rostest files that should have run")
+    ap.add_argument("--pytest38", action="append", default=[],
+                    help="JUnit XML file of the ROS-free unit tests run under Python 3.8")
+    ap.add_argument("--python38-absent", action="store_true",
+                    help="no Python 3.8 environment: say so on the Python 3.8 line")
     args = ap.parse_args(argv)
 
+    print_slowest(args.pytest, args.e2e)
     total = Tally()
     for path in args.pytest:
         t = tally_junit(path, "pytest")
         print("fast suite (pytest) %s: %d passed, %d failed, %d skipped" % (
             os.path.basename(path), t.passed, t.failed, t.skipped))
         total.add(t)
+    total.add(python38_line(args.pytest38, args.python38_absent))
     if args.e2e:
         t = tally_e2e(args.e2e, args.e2e_expected)
         print("end-to-end suite (rostest on vcan0): %d passed, %d failed" % (t.passed, t.failed))

@@ -4,6 +4,8 @@ python-canopen alone, both against the virtual EPOS4 (a benchmark).
 
     .venv/bin/python maxon_epos4_ros_canopen/benchmarks/cycle_cpu.py --impl driver --axes 8 [--layout compact]
     .venv/bin/python maxon_epos4_ros_canopen/benchmarks/cycle_cpu.py --impl baseline --axes 8
+    .venv/bin/python maxon_epos4_ros_canopen/benchmarks/cycle_cpu.py --impl lean --axes 8 [--layout compact]
+    .venv/bin/python maxon_epos4_ros_canopen/benchmarks/cycle_cpu.py --ratio --axes 32 [--rounds 3] [--plot F.png]
     .venv/bin/python maxon_epos4_ros_canopen/benchmarks/cycle_cpu.py --impl driver --axes 127 --init-only
 
 One process per run (run_all starts them), printing one JSON line: init
@@ -19,6 +21,19 @@ not charged either; TxPDOs still arrive and are decoded by the master.
 CSP at 10 ms SYNC, a new target position every cycle for every axis.
 The driver is used through its public API only (Driver(config, bus=...),
 init, switch_mode, add_cycle_callback, set_command, close).
+
+Two baselines: ``baseline``, python-canopen's PDO maps (DCF layout);
+``lean``, what a competent user writes on python-can alone: each cycle
+drains the socket into a dict of latest frames, unpacks the TxPDOs and
+packs the RxPDOs with prepared ``struct``s, sends them and SYNC; no PDO
+maps, no unit expressions, no state machine (the drives are enabled over
+SDO at setup, which is not measured). ``--layout`` picks the PDO layout of
+the driver and of the lean loop alike, so each ratio is at equal frames.
+
+``--ratio`` runs driver and lean loop for both layouts in alternating
+rounds (a process each) and prints the CPU per axis (median, min-max over
+the rounds) and the ratios: at equal frames (driver / lean, same layout)
+and across layouts (driver compact / lean DCF).
 """
 from __future__ import annotations
 
@@ -31,6 +46,7 @@ import resource
 import sys
 import threading
 import time
+from typing import Callable
 
 import can
 import canopen
@@ -54,6 +70,7 @@ class SinkBus(can.BusABC):
 
     def __init__(self, channel: str) -> None:
         self.inner = can.Bus(interface="virtual", channel=channel)
+        self.channel = channel
         self.sinking = False
         self.sent = collections.Counter()
         self.received = collections.Counter()
@@ -110,6 +127,27 @@ def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True) -> dic
     return {"init_s": init_s, "stop": driver.close}
 
 
+def run_every_period(cycle: Callable[[], None], on_close: Callable[[], None] = lambda: None) -> Callable[[], None]:
+    """A baseline's loop: ``cycle`` every PERIOD on a thread of its own
+    (as the driver's cycle runs); returns the function that stops it."""
+    stop = threading.Event()
+
+    def loop() -> None:
+        next_t = time.monotonic()
+        while not stop.is_set():
+            cycle()
+            next_t += PERIOD
+            stop.wait(max(0.0, next_t - time.monotonic()))
+    thread = threading.Thread(target=loop, daemon=True)
+    thread.start()
+
+    def close() -> None:
+        stop.set()
+        thread.join(2.0)
+        on_close()
+    return close
+
+
 def run_baseline(bus: SinkBus, axes: int) -> dict:
     """What a user writes on python-canopen alone: RemoteNodes with the
     DCF's PDO maps, CiA 402 enable over SDO, then every 10 ms read the
@@ -131,45 +169,184 @@ def run_baseline(bus: SinkBus, axes: int) -> dict:
                       node.tpdo[2]["Velocity actual value"], node.rpdo[1], node.rpdo[2],
                       node.rpdo[2]["Target position"], node.rpdo[1]["Controlword"]))
     init_s = time.perf_counter() - t0
-    stop = threading.Event()
     t_start = time.monotonic()
 
-    def loop() -> None:
-        next_t = time.monotonic()
-        while not stop.is_set():
-            target = int(3200 * 0.2 * math.sin(time.monotonic() - t_start) / (2 * math.pi))
-            for sw, pos, vel, rpdo1, rpdo2, tp, cw in nodes:
-                _ = (sw.raw, pos.raw * 2 * math.pi / 3200, vel.raw)
-                cw.raw = 15
-                tp.raw = target
-                rpdo1.transmit()
-                rpdo2.transmit()
-            network.send_message(SYNC_ID, b"")
-            next_t += PERIOD
-            stop.wait(max(0.0, next_t - time.monotonic()))
-    thread = threading.Thread(target=loop, daemon=True)
-    thread.start()
+    def cycle() -> None:
+        target = int(3200 * 0.2 * math.sin(time.monotonic() - t_start) / (2 * math.pi))
+        for sw, pos, vel, rpdo1, rpdo2, tp, cw in nodes:
+            _ = (sw.raw, pos.raw * 2 * math.pi / 3200, vel.raw)
+            cw.raw = 15
+            tp.raw = target
+            rpdo1.transmit()
+            rpdo2.transmit()
+        network.send_message(SYNC_ID, b"")
+    return {"init_s": init_s, "stop": run_every_period(cycle, network.disconnect)}
 
-    def close() -> None:
-        stop.set()
-        thread.join(2.0)
+
+# The lean loop's frames per layout: (COB-ID base, struct format) of the
+# RxPDOs it sends each cycle and of the TxPDOs it reads. DCF: the
+# project's EPOS4 DCF mapping (RxPDO1 6040+60FF, RxPDO2 607A+6081; TxPDO1
+# 6041+6061, TxPDO2 606B+606C, TxPDO3 6064+30D3.1). Compact: the driver's
+# compact CSP layout (RxPDO1 6040+607A; TxPDO1 6041+6064, TxPDO2 606C).
+LEAN_FRAMES = {
+    "dcf": {"rx": ((0x200, "<Hi"), (0x300, "<iI")), "tx": ((0x180, "<Hb"), (0x280, "<ii"), (0x380, "<ii"))},
+    "compact": {"rx": ((0x200, "<Hi"),), "tx": ((0x180, "<Hi"), (0x280, "<i"))},
+}
+
+
+def _lean_setup(channel: str, axes: int, layout: str) -> None:
+    """The drives in CSP, Operation Enabled, OPERATIONAL, with the layout's
+    PDO mapping (written through canopen; setup is not measured)."""
+    from maxon_epos4_ros_canopen.config import load_config
+    from maxon_epos4_ros_canopen.driver.plan import plan_node
+
+    network = canopen.Network()
+    network.connect(interface="virtual", channel=channel)
+    try:
+        for i in range(1, axes + 1):
+            node = canopen.RemoteNode(i, DCF)
+            network.add_node(node)
+            if layout == "compact":
+                cfg = load_config({"sync": {"interval_ms": PERIOD * 1000}, "nodes": {"n": dict(
+                    UNITS, id=i, eds_file=DCF, pdo_layout="compact", modes=["CSP"])}}, "lean")
+                plan_node(cfg.nodes[0], node.object_dictionary, cfg.sync, "lean").write_with_canopen(node)
+            node.sdo["Modes of operation"].raw = 8
+            for cw in (6, 7, 15):
+                node.sdo["Controlword"].raw = cw
+            node.nmt.state = "OPERATIONAL"
+    finally:
         network.disconnect()
-    return {"init_s": init_s, "stop": close}
+
+
+def run_lean(bus: SinkBus, axes: int, layout: str) -> dict:
+    """The lean loop on python-can alone (see the module text)."""
+    import struct
+    t0 = time.perf_counter()
+    _lean_setup(bus.channel, axes, layout)
+    init_s = time.perf_counter() - t0
+    frames = LEAN_FRAMES[layout]
+    rx = [[can.Message(arbitration_id=base + i, is_extended_id=False, data=bytes(struct.calcsize(fmt)))
+           for base, fmt in frames["rx"]] for i in range(1, axes + 1)]
+    rx_pack = [struct.Struct(fmt).pack for _, fmt in frames["rx"]]
+    tx = [(base, struct.Struct(fmt).unpack) for base, fmt in frames["tx"]]
+    sync = can.Message(arbitration_id=SYNC_ID, is_extended_id=False, data=b"")
+    latest: dict = {}
+    t_start = time.monotonic()
+    inc_per_rad = 3200 / (2 * math.pi)
+    recv = bus.recv
+
+    def cycle() -> None:
+        msg = recv(0.0)
+        while msg is not None:
+            latest[msg.arbitration_id] = msg.data
+            msg = recv(0.0)
+        target = int(round(0.2 * math.sin(time.monotonic() - t_start) * inc_per_rad))
+        for i in range(axes):
+            node_id = i + 1
+            values = [unpack(latest[base + node_id]) for base, unpack in tx if base + node_id in latest]
+            _ = values and values[0][0] & 0x6F == 0x27  # operation enabled?
+            msgs = rx[i]
+            msgs[0].data[:] = rx_pack[0](15, target if layout == "compact" else 0)
+            if len(msgs) > 1:
+                msgs[1].data[:] = rx_pack[1](target, 0)
+            for m in msgs:
+                bus.send(m)
+        bus.send(sync)
+    return {"init_s": init_s, "stop": run_every_period(cycle)}
+
+
+def ratio(axes: int, rounds: int, seconds: float, plot: str = "") -> int:
+    """Driver against the lean loop, both layouts, alternating rounds."""
+    import statistics
+    import subprocess
+    runs = [("driver", "dcf"), ("lean", "dcf"), ("driver", "compact"), ("lean", "compact")]
+    got: dict = {r: [] for r in runs}
+    for k in range(rounds):
+        for impl, layout in runs:
+            p = subprocess.run([sys.executable, os.path.abspath(__file__), "--impl", impl, "--layout", layout,
+                                "--axes", str(axes), "--seconds", str(seconds)], capture_output=True, text=True)
+            lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+            out = json.loads(lines[-1]) if lines else {"ok": False, "error": p.stderr.strip()[-300:]}
+            if not out.get("ok"):
+                print("round %d %s %s: %s" % (k + 1, impl, layout, out.get("error")))
+                continue
+            got[(impl, layout)].append(out)
+            print("round %d %-6s %-7s %6.1f us/axis  %.2f PDO frames/axis" % (
+                k + 1, impl, layout, out["cpu_per_axis_us"], out["pdos_per_axis"]), flush=True)
+    cpu = {r: [o["cpu_per_axis_us"] for o in v] for r, v in got.items()}
+    if not all(cpu.values()):
+        print("some runs failed: no ratio")
+        return 1
+    med = {r: statistics.median(v) for r, v in cpu.items()}
+    print("\nCPU per axis at %d axes, %d round(s) of %.0f s, median (min-max):" % (axes, rounds, seconds))
+    for r in runs:
+        print("  %-6s %-7s %6.1f us (%.1f-%.1f), %.2f PDO frames/axis/SYNC" % (
+            r[0], r[1], med[r], min(cpu[r]), max(cpu[r]), statistics.median(o["pdos_per_axis"] for o in got[r])))
+    print("ratios, median of the rounds' (min-max) (target: driver <= 1.0 x lean loop):")
+    for d, b, what in ((("driver", "dcf"), ("lean", "dcf"), "equal frames, DCF layout"),
+                       (("driver", "compact"), ("lean", "compact"), "equal frames, compact layout"),
+                       (("driver", "compact"), ("lean", "dcf"), "across layouts: driver compact / lean DCF")):
+        ratios = [a / c for a, c in zip(cpu[d], cpu[b])]  # round by round: the same moment's load
+        print("  %.2f (%.2f-%.2f)  %s" % (statistics.median(ratios), min(ratios), max(ratios), what))
+    if plot:
+        _plot_ratio(plot, runs, cpu, axes)
+    return 0
+
+
+def _plot_ratio(path: str, runs, cpu, axes: int) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    colours = {"driver": "tab:blue", "lean": "tab:orange"}
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 4))
+    for n, layout in enumerate(("dcf", "compact")):
+        for m, impl in enumerate(("driver", "lean")):
+            v = cpu[(impl, layout)]
+            mid = sorted(v)[len(v) // 2]
+            ax1.bar(n + 0.4 * m, mid, width=0.38, color=colours[impl], label=impl if n == 0 else None,
+                    yerr=[[mid - min(v)], [max(v) - mid]], capsize=4)
+    ax1.set_xticks([0.2, 1.2])
+    ax1.set_xticklabels(["DCF layout", "compact layout"])
+    ax1.set_ylabel("CPU per axis per cycle (us), median, bar: min-max")
+    ax1.set_ylim(bottom=0)
+    ax1.set_title("%d axes" % axes)
+    ax1.legend()
+    pairs = [(("driver", "dcf"), ("lean", "dcf"), "DCF / DCF"), (("driver", "compact"), ("lean", "compact"),
+             "compact / compact"), (("driver", "compact"), ("lean", "dcf"), "compact / lean DCF")]
+    for n, (d, b, label) in enumerate(pairs):
+        r = [a / c for a, c in zip(cpu[d], cpu[b])]
+        mid = sorted(r)[len(r) // 2]
+        ax2.bar(n, mid, color="tab:blue", yerr=[[mid - min(r)], [max(r) - mid]], capsize=4,
+                label="driver / lean loop" if n == 0 else None)
+    ax2.axhline(1.0, color="tab:red", linestyle="--", label="target 1.0")
+    ax2.set_xticks(range(3))
+    ax2.set_xticklabels(["equal frames\nDCF", "equal frames\ncompact", "across layouts"])
+    ax2.set_ylim(bottom=0)
+    ax2.set_ylabel("ratio, median, bar: min-max over rounds")
+    ax2.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    print("plot: %s" % path)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--impl", choices=("driver", "baseline"), default="driver")
+    ap.add_argument("--impl", choices=("driver", "baseline", "lean"), default="driver")
     ap.add_argument("--axes", type=int, default=8)
-    ap.add_argument("--layout", default="dcf", help="driver only: the node layer's pdo_layout")
+    ap.add_argument("--layout", default="dcf", help="driver and lean: the PDO layout (dcf, compact)")
+    ap.add_argument("--ratio", action="store_true", help="driver against lean loop, both layouts")
+    ap.add_argument("--rounds", type=int, default=3, help="--ratio: alternating rounds")
+    ap.add_argument("--plot", default="", help="--ratio: write a PNG here")
     ap.add_argument("--seconds", type=float, default=3.0)
     ap.add_argument("--init-only", action="store_true", help="driver only: measure init, then close")
     args = ap.parse_args()
+    if args.ratio:
+        return ratio(args.axes, args.rounds, args.seconds, args.plot)
     channel = "cycle_cpu_%d" % os.getpid()
     sim_bus = can.Bus(interface="virtual", channel=channel)
     sim = Simulator(sim_bus, [NodeConfig(i, DCF) for i in range(1, args.axes + 1)], tick=0.005).start()
     bus = SinkBus(channel)
-    out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl == "driver" else "dcf"}
+    out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl != "baseline" else "dcf"}
     run = None
     try:
         if args.init_only:
@@ -182,7 +359,12 @@ def main() -> int:
             print(json.dumps(out), flush=True)
             os._exit(0)
         else:
-            run = run_driver(bus, args.axes, args.layout) if args.impl == "driver" else run_baseline(bus, args.axes)
+            if args.impl == "driver":
+                run = run_driver(bus, args.axes, args.layout)
+            elif args.impl == "lean":
+                run = run_lean(bus, args.axes, args.layout)
+            else:
+                run = run_baseline(bus, args.axes)
             time.sleep(0.5)  # settle: mode switch done, targets moving
             bus.sinking = True
             cpu0, sim0, wall0 = time.process_time(), sim.cpu_seconds, time.monotonic()

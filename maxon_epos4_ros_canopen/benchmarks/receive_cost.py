@@ -14,7 +14,7 @@ then each way of reading drains it and prints frames/s and time per frame:
 * python-can's recv() alone;
 * the driver's receive path: canopen's notifier and Network with the
   driver's ReceiveClock first and its TpdoReceiver subscribed, as
-  Driver._open builds them.
+  Link.open (driver/link.py) builds them.
 
 Figures depend on the machine and its load: compare runs on one machine.
 """

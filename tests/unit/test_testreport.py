@@ -84,3 +84,30 @@ def test_unreadable_results_fail(tmp_path, content):
     p.write_text(content)
     t = testreport.tally_junit(str(p), "pytest")
     assert t.failed == 1 and t.passed == 0
+
+
+def _timed(cases):
+    return "<testsuite>%s</testsuite>" % "".join(
+        '<testcase classname="%s" name="%s" time="%s"/>' % c for c in cases)
+
+
+def test_the_slowest_files_and_tests_with_their_seconds(tmp_path, capsys):
+    fast = tmp_path / "pytest.xml"
+    fast.write_text(_timed([("pkg.test.unit.test_a.TestX", "t1", "3.0"), ("pkg.test.unit.test_a", "t2", "4.0"),
+                            ("test_b", "t3", "0.5"), ("test_c", "t4", "bad")]))
+    e2e = tmp_path / "e2e"
+    d = e2e / "xml" / "pkg.slow.test" / "pkg"
+    d.mkdir(parents=True)
+    (d / "rosunit-slow.xml").write_text(_timed([("__main__.Session", "test_01_init", "20.5"),
+                                               ("__main__.Session", "test_02_move", "1.0")]))
+    (e2e / "manifest").write_text("pkg slow.test 0 95.2 pkg.group\npkg quick.test 0 12.0 pkg.group\n")
+    files, tests = testreport.timings([str(fast)], str(e2e))
+    assert files == [("e2e pkg/slow.test", 95.2), ("e2e pkg/quick.test", 12.0), ("pytest test_a.py", 7.0),
+                     ("pytest test_b.py", 0.5)]
+    assert tests[0] == ("e2e pkg/slow.test: test_01_init", 20.5)
+    assert tests[1] == ("pytest pkg.test.unit.test_a.t2", 4.0)
+    assert len(tests) == 5  # the case without a readable time is left out
+    testreport.print_slowest([str(fast)], str(e2e), count=2)
+    out = capsys.readouterr().out
+    assert "the 2 slowest files:\n      95.2 s  e2e pkg/slow.test\n      12.0 s  e2e pkg/quick.test\n" in out
+    assert "the 2 slowest tests:\n      20.5 s  e2e pkg/slow.test: test_01_init\n" in out

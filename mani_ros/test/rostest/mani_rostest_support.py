@@ -1,16 +1,17 @@
 """Helpers of the mani_ros rostest scripts (imported from the scripts beside it)."""
 from __future__ import annotations
 
-import os
 import time
 from typing import Any, Callable, List, Optional
 
-import actionlib
 import can
 import rospy
 from geometry_msgs.msg import Twist
 from nav_msgs.msg import Odometry
 
+from maxon_epos4_ros_canopen import bus_watch
+from maxon_epos4_ros_canopen.bus_watch import poll
+from maxon_epos4_ros_canopen_node.goal_client import GoalClient
 from mani_ros.msg import LocomotionControlAction, LocomotionControlGoal
 
 
@@ -34,12 +35,7 @@ MARKER_ID = 0x7FF
 
 def wait_until(condition: Callable[[], bool], timeout: float, step: float = 0.05) -> bool:
     """Poll condition until it holds or timeout [s] passes; returns the last value."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and not rospy.is_shutdown():
-        if condition():
-            return True
-        time.sleep(step)
-    return bool(condition())
+    return poll(condition, timeout, step, stop=rospy.is_shutdown)
 
 
 def drive_until(publish: Callable[[], None], condition: Callable[[], bool], timeout: float,
@@ -57,8 +53,11 @@ def drive_until(publish: Callable[[], None], condition: Callable[[], bool], time
     return bool(condition())
 
 
-def lc_client(timeout: float = 60.0) -> actionlib.SimpleActionClient:
-    client = actionlib.SimpleActionClient("locomotion_control", LocomotionControlAction)
+def lc_client(timeout: float = 60.0) -> GoalClient:
+    """A client of locomotion_control. Not actionlib's SimpleActionClient:
+    it loses an answer that comes before its send_goal returns (an invalid
+    goal's, on a loaded host), and then reports LOST (goal_client.py)."""
+    client = GoalClient("locomotion_control", LocomotionControlAction)
     if not client.wait_for_server(rospy.Duration(timeout)):
         raise AssertionError("locomotion_control action server did not come up")
     return client
@@ -143,34 +142,16 @@ class TopicLog:
         return None
 
 
-class FrameRecorder(can.Listener):
-    """Records the frames seen on the test's CAN bus (``~device``, socketcan)."""
+class FrameRecorder(bus_watch.FrameRecorder):
+    """Records the frames seen on the test's CAN bus (``~device``, socketcan)
+    from the moment it is made."""
 
     def __init__(self, channel: Optional[str] = None) -> None:
         """channel: the CAN interface; None: the test's ``~device``."""
-        self.frames: List[can.Message] = []
         self.channel = channel or rospy.get_param("~device", "vcan0")
-        self._markers_sent: List[bytes] = []
-        self._markers_seen: List[bytes] = []
-        self.bus = can.Bus(interface="socketcan", channel=self.channel)
-        self.notifier = can.Notifier(self.bus, [self])
-
-    def close(self) -> None:
-        self.notifier.stop()
-        self.bus.shutdown()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        if msg.arbitration_id == MARKER_ID and bytes(msg.data) in self._markers_sent:
-            # This recorder's own marker: not a frame of the bus.
-            self._markers_seen.append(bytes(msg.data))
-            return
-        self.frames.append(msg)
-
-    def clear(self) -> None:
-        self.frames = []
-
-    def with_id(self, can_id: int) -> List[can.Message]:
-        return [f for f in list(self.frames) if f.arbitration_id == can_id]
+        super().__init__(can.Bus(interface="socketcan", channel=self.channel), marker_id=MARKER_ID,
+                         marker_bus=lambda: can.Bus(interface="socketcan", channel=self.channel))
+        self.start(drain=False)
 
     def catch_up(self, timeout: float = READER_TIMEOUT) -> bool:
         """Wait until the reader holds a frame sent after this call: socketcan
@@ -183,16 +164,8 @@ class FrameRecorder(can.Listener):
 
     def catch_up_by_marker(self, timeout: float = READER_TIMEOUT) -> bool:
         """catch_up for a bus that carries no traffic of its own (one that
-        must stay silent): send a marker frame (MARKER_ID, eight random
-        bytes) from a second socket, which socketcan hands this reader like
-        any other socket's frame, and wait until it is in; every frame sent
+        must stay silent): bus_watch.FrameRecorder.flush, a marker frame
+        (MARKER_ID, eight random bytes) from a second socket, which socketcan
+        hands this reader like any other socket's frame; every frame sent
         before it is in then. Markers never show in ``frames``."""
-        token = os.urandom(8)
-        self._markers_sent.append(token)
-        sender = can.Bus(interface="socketcan", channel=self.channel)
-        try:
-            sender.send(can.Message(arbitration_id=MARKER_ID, data=token, is_extended_id=False),
-                        timeout=1.0)
-        finally:
-            sender.shutdown()
-        return wait_until(lambda: token in self._markers_seen, timeout)
+        return self.flush(timeout)

@@ -14,9 +14,6 @@ _SRC = os.path.normpath(os.path.join(os.path.dirname(__file__), "..", "..", "src
 _PACKAGE = os.path.join(_SRC, "mani_ros")
 _INIT = os.path.join(_PACKAGE, "__init__.py")
 
-if _SRC not in sys.path:
-    sys.path.insert(0, _SRC)
-
 _present = sys.modules.get("mani_ros")
 if _present is None or os.path.normpath(getattr(_present, "__file__", None) or "") != _INIT:
     for _name in [n for n in sys.modules if n.startswith("mani_ros.") and not n.startswith("mani_ros.test")]:

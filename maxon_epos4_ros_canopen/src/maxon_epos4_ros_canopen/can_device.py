@@ -59,8 +59,11 @@ class ArrivalClock:
     CHECK_LAG_S = 0.2  # a frame that waited longer has the offset read again first,
     CHECK_S = 0.1      # unless it was read that recently
 
-    def __init__(self, clock: Callable[[], float] = time.monotonic, max_lag: float = MAX_RECEIVE_LAG) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic, max_lag: float = MAX_RECEIVE_LAG,
+                 wall: Optional[Callable[[], float]] = None) -> None:
         self._clock = clock
+        # what frames are stamped with (time.time looked up at each read)
+        self._wall = wall if wall is not None else lambda: time.time()
         self.max_lag = max_lag  # see max_receive_lag
         self._taken = -math.inf  # when the offset was read, on clock
         self._offset = 0.0       # wall clock minus clock
@@ -80,7 +83,7 @@ class ArrivalClock:
         return read_at - lag if 0.0 <= lag <= self.max_lag else read_at
 
     def _refresh(self, read_at: float) -> None:
-        self._offset = time.time() - self._clock()
+        self._offset = self._wall() - self._clock()
         self._taken = read_at
 
 

@@ -22,12 +22,14 @@ Public API
 ``state_from_statusword(sw) -> State``
     Master side: decode a statusword; raises ``ValueError`` for bit patterns
     CiA 402 does not define.
-``next_controlword(current_state, target_state) -> Optional[int]``
+``next_controlword(current_state, target_state, quick_stop_option_code=None) -> Optional[int]``
     Master side: the controlword that moves the drive one transition closer
     to ``target_state``, or ``None`` when the drive is already there or no
     command can help right now (it moves on its own out of
-    NOT_READY_TO_SWITCH_ON and FAULT_REACTION_ACTIVE; FAULT and
-    FAULT_REACTION_ACTIVE and NOT_READY_TO_SWITCH_ON are not command targets).
+    NOT_READY_TO_SWITCH_ON and FAULT_REACTION_ACTIVE, and out of
+    QUICK_STOP_ACTIVE with option codes 0-4; FAULT and FAULT_REACTION_ACTIVE
+    and NOT_READY_TO_SWITCH_ON are not command targets). With option codes
+    5-8 enable operation leaves QUICK_STOP_ACTIVE (transition 16).
 ``apply_controlword(state, cw, previous_cw=0, quick_stop_option_code=2) -> State``
     Drive side: the state after the drive receives controlword ``cw``.
     Automatic transitions (0, 1, 13, 14, and the end of a quick stop for
@@ -45,7 +47,7 @@ from typing import Dict, List, Optional, Tuple
 __all__ = [
     "State", "OperationMode", "MODE_SHORT_NAMES", "mode_name", "state_from_statusword", "state_or_none",
     "next_controlword", "apply_controlword", "statusword_state_bits",
-    "COMMANDS",
+    "COMMANDS", "stays_in_quick_stop",
 ]
 
 
@@ -191,10 +193,9 @@ def statusword_state_bits(state: State) -> int:
     return _STATE_BITS[state]
 
 
-# Commanded transitions only (CiA 402 transitions 2-12, 15); automatic ones
-# are the drive's business.  QUICK_STOP_ACTIVE -> OPERATION_ENABLED
-# (transition 16) is left out on purpose: it exists only for quick stop option
-# codes 5-8, which the master may not know, while disable voltage always works.
+# Commanded transitions only (CiA 402 transitions 2-12, 15, 16); automatic
+# ones are the drive's business. What Quick Stop Active allows depends on the
+# quick stop option code (0x605A), see _quick_stop_edges.
 _EDGES: Dict[State, List[Tuple[int, State]]] = {
     State.SWITCH_ON_DISABLED: [(CW_SHUTDOWN, State.READY_TO_SWITCH_ON)],
     State.READY_TO_SWITCH_ON: [(CW_SWITCH_ON, State.SWITCHED_ON),
@@ -213,18 +214,47 @@ _EDGES: Dict[State, List[Tuple[int, State]]] = {
 }
 
 
-def next_controlword(current_state: State, target_state: State) -> Optional[int]:
+def stays_in_quick_stop(quick_stop_option_code: Optional[int]) -> bool:
+    """Whether a drive with this 0x605A stays in Quick Stop Active after its
+    ramp (codes 5-8), where enable operation takes it back (transition 16)."""
+    return quick_stop_option_code is not None and 5 <= quick_stop_option_code <= 8
+
+
+def _quick_stop_edges(quick_stop_option_code: Optional[int]) -> List[Tuple[int, State]]:
+    """Commands out of Quick Stop Active that keep a moving drive powered.
+
+    Codes 5-8: enable operation (transition 16) back to Operation Enabled,
+    disable voltage only for a target beyond it. Codes 0-4: none; the drive
+    ends its ramp in Switch On Disabled by itself (disable voltage in the
+    ramp would let it coast). Unknown (None): disable voltage, the one
+    command every drive takes there."""
+    if stays_in_quick_stop(quick_stop_option_code):
+        return [(CW_ENABLE_OPERATION, State.OPERATION_ENABLED), (CW_DISABLE_VOLTAGE, State.SWITCH_ON_DISABLED)]
+    if quick_stop_option_code is None:
+        return _EDGES[State.QUICK_STOP_ACTIVE]
+    return []
+
+
+def next_controlword(current_state: State, target_state: State,
+                     quick_stop_option_code: Optional[int] = None) -> Optional[int]:
     """Controlword for the first transition on the shortest path from
     ``current_state`` to ``target_state`` (master side).
 
     Returns None when ``current_state == target_state`` or when no command
     leads there from ``current_state`` (wait for the drive, or the target is
     a state only the drive itself enters, such as FAULT).
+    ``quick_stop_option_code`` is the drive's 0x605A: it decides the way out
+    of QUICK_STOP_ACTIVE (see _quick_stop_edges).
     """
     if current_state == target_state:
         return None
+
+    def edges(state: State) -> List[Tuple[int, State]]:
+        if state == State.QUICK_STOP_ACTIVE:
+            return _quick_stop_edges(quick_stop_option_code)
+        return _EDGES[state]
     seen = {current_state}
-    queue = deque((cw, nxt) for cw, nxt in _EDGES[current_state])
+    queue = deque((cw, nxt) for cw, nxt in edges(current_state))
     while queue:
         first_cw, state = queue.popleft()
         if state == target_state:
@@ -232,7 +262,7 @@ def next_controlword(current_state: State, target_state: State) -> Optional[int]
         if state in seen:
             continue
         seen.add(state)
-        queue.extend((first_cw, nxt) for _, nxt in _EDGES[state])
+        queue.extend((first_cw, nxt) for _, nxt in edges(state))
     return None
 
 
@@ -299,6 +329,6 @@ def apply_controlword(state: State, cw: int, previous_cw: int = 0,
     # QUICK_STOP_ACTIVE
     if command == "disable_voltage":
         return State.SWITCH_ON_DISABLED  # 12
-    if command == "enable_operation" and 5 <= quick_stop_option_code <= 8:
+    if command == "enable_operation" and stays_in_quick_stop(quick_stop_option_code):
         return State.OPERATION_ENABLED  # 16
     return state

@@ -13,235 +13,44 @@ Unknown options are accepted and listed in ``DriverConfig.warnings`` (as
 ros_canopen ignores them); a wrong type or a missing required key raises
 ConfigError naming the key and the source. Unit expressions are compiled
 here so an invalid or hostile one stops the node at start.
+
+The dataclasses and ConfigError are in config_schema.py, the typed reading
+of a mapping and the merging of YAML files in config_reader.py.
 """
 from __future__ import annotations
 
-import math
 import os
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from types import MappingProxyType
-from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from .cia402 import MODE_SHORT_NAMES
 from .can_device import SOCKETCAN, CanDeviceError, parse_device
+from .config_reader import ParamReader, merge_params
+from .config_schema import (DEFAULT_UNITS, HALT_MODES, PDO_LAYOUTS, SOCKETCAN_PLUGIN, SUPPORTED_DRIVE_MODES,
+                            SWITCHING_STATES, BusConfig, ConfigError, ControllerConfig, DriverConfig,
+                            HeartbeatConfig, NodeConfig, PublishConfig, RealtimeConfig, SyncConfig)
 from .objects import ObjectKey, ObjectStringError, parse_object_key, parse_publish_spec
 from .units import Expression, UnitExpressionError, compile_expression
 
-__all__ = [
-    "ConfigError",
-    "BusConfig",
-    "SyncConfig",
-    "HeartbeatConfig",
-    "PublishConfig",
-    "NodeConfig",
-    "ControllerConfig",
-    "DriverConfig",
-    "load_config",
-    "load_yaml_files",
-    "merge_params",
-    "parse_cansend",
-    "SUPPORTED_DRIVE_MODES",
-    "SWITCHING_STATES",
-    "DEFAULT_UNITS",
-    "PDO_LAYOUTS",
-    "HALT_MODES",
-]
+__all__ = ["ConfigError", "load_config", "parse_cansend"]
 
 Resolver = Callable[[str], str]
 
-# CiA 402 modes of operation this driver can switch to.
-SUPPORTED_DRIVE_MODES = {int(m): short for m, short in MODE_SHORT_NAMES.items()}
-
-# switching_state takes canopen_402's InternalState numbers. (The seed's
-# comment "2 # (Operation_Enable)" is wrong about the name: in canopen_402
-# 2 is Switch_On_Disabled and 5 is Operation_Enable.)
-SWITCHING_STATES = {
-    2: "switch_on_disabled",
-    3: "ready_to_switch_on",
-    4: "switched_on",
-    5: "operation_enabled",
-}
-
-# canopen_motor_node's defaults: ROS units rad, rad/s against a drive in
-# milli-degrees. Users of the seeds override all of them.
-DEFAULT_UNITS = {
-    "pos_to_device": "rint(rad2deg(pos)*1000)",
-    "pos_from_device": "deg2rad(obj6064)/1000",
-    "vel_to_device": "rint(rad2deg(vel)*1000)",
-    "vel_from_device": "deg2rad(obj606C)/1000",
-    "eff_to_device": "rint(eff)",
-    "eff_from_device": "0",
-}
 _UNIT_KEYS = tuple(DEFAULT_UNITS)
-
-# Node layer ``pdo_layout``: the DCF's own PDO mapping (default) or the
-# driver's compact one (see driver/plan.py and docs/driver.md).
-PDO_LAYOUTS = ("dcf", "compact")
-# Node layer ``halt_mode``: what driver/halt does. ``quick_stop`` as
-# ros_canopen's Motor402 (Operation Enabled -> Quick Stop Active: the drive
-# ramps down on 0x6085, then acts on 0x605A); ``halt_bit``: controlword
-# bit 8, the drive decelerates on its profile and stays Operation Enabled.
-HALT_MODES = ("quick_stop", "halt_bit")
 
 _BUS_KEYS = {"device", "loopback", "driver_plugin", "master_allocator", "bitrate"}
 # CiA 301 bit rates, bit/s
 _BITRATES = (10000, 20000, 50000, 125000, 250000, 500000, 800000, 1000000)
+MAX_PERIOD_MS = 65535.0
 _SYNC_KEYS = {"interval_ms", "update_ms", "overflow", "kernel_timer"}
 _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
-              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes", "halt_mode"}
-_TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names"}
+              "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes", "halt_mode",
+                                                                                 "readings_every"}
+_TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names", "realtime"}
+_REALTIME_KEYS = {"enabled", "priority", "lock_memory"}
 _CONTROLLER_KEYS = {"type", "joint", "joints", "publish_rate", "required_drive_mode", "constraints"}
-_SOCKETCAN_PLUGIN = "can::SocketCANInterface"
-
-
-class ConfigError(Exception):
-    """A configuration mistake; the message names the key and the source."""
-
-    def __init__(self, source: str, key: str, problem: str) -> None:
-        self.source = source
-        self.key = key
-        self.problem = problem
-        super().__init__("%s: %s: %s" % (source, key, problem))
-
-
-@dataclass(frozen=True)
-class BusConfig:
-    device: str = "can0"
-    loopback: bool = False
-    driver_plugin: str = _SOCKETCAN_PLUGIN
-    master_allocator: str = "canopen::SimpleMaster::Allocator"
-    bitrate: Optional[int] = None  # bit/s, for adapters opened with one (not SocketCAN)
-
-
-@dataclass(frozen=True)
-class SyncConfig:
-    interval_ms: float = 0.0   # 0: no SYNC producer
-    update_ms: float = 0.0     # period of the control cycle
-    overflow: int = 0          # 0: SYNC without counter, else counter 1..overflow
-    # SYNC from the kernel's broadcast manager (SocketCAN) with the cycle
-    # paced between SYNCs, instead of the cycle sending each SYNC itself
-    kernel_timer: bool = False
-
-
-@dataclass(frozen=True)
-class HeartbeatConfig:
-    rate: float
-    can_id: int
-    data: bytes
-    extended: bool = False
-    msg: str = ""
-
-
-@dataclass(frozen=True)
-class PublishConfig:
-    spec: str          # as written, e.g. "1003sub0!"
-    key: ObjectKey
-    force: bool        # "!": read from the device each time
-    topic: str         # "<node name>_<object string>"
-
-
-@dataclass(frozen=True)
-class NodeConfig:
-    key: str                      # the entry's key ("node1") or list position
-    node_id: int
-    name: str                     # joint name
-    eds_file: str                 # resolved, absolute path
-    eds_pkg: Optional[str]
-    dcf_overlay: Tuple[Tuple[ObjectKey, str, str], ...]  # (key, value, key as written)
-    switching_state: int
-    pos_to_device: Expression
-    pos_from_device: Expression
-    vel_to_device: Expression
-    vel_from_device: Expression
-    eff_to_device: Expression
-    eff_from_device: Expression
-    publish: Tuple[PublishConfig, ...]
-    motor_allocator: str = "canopen::Motor402::Allocator"
-    extra: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
-    # "dcf": the DCF's PDO mapping; "compact": the driver's own, only what
-    # ``modes`` need (driver/plan.py). modes: the node's ``modes`` key, else
-    # the required_drive_mode of the controllers naming this joint.
-    pdo_layout: str = "dcf"
-    halt_mode: str = "quick_stop"
-    modes: Tuple[int, ...] = ()
-
-
-@dataclass(frozen=True)
-class ControllerConfig:
-    name: str
-    type: str
-    joints: Tuple[str, ...]
-    publish_rate: Optional[float]
-    required_drive_mode: Optional[int]
-    constraints: Mapping[str, Any]
-    params: Mapping[str, Any]     # everything else the controller may use
-    group: bool                   # "joints:" list rather than "joint:"
-
-
-@dataclass(frozen=True)
-class DriverConfig:
-    source: str
-    bus: BusConfig
-    sync: SyncConfig
-    heartbeat: Optional[HeartbeatConfig]
-    nodes: Tuple[NodeConfig, ...]
-    joint_names: Tuple[str, ...]
-    controllers: Tuple[ControllerConfig, ...]
-    warnings: Tuple[str, ...]
-
-    def node(self, name_or_key: str) -> NodeConfig:
-        for n in self.nodes:
-            if name_or_key in (n.name, n.key):
-                return n
-        raise KeyError(name_or_key)
-
-    def controller(self, name: str) -> ControllerConfig:
-        for c in self.controllers:
-            if c.name == name:
-                return c
-        raise KeyError(name)
-
-
-# --------------------------------------------------------------------------
-# helpers
-
-
-def merge_params(base: Mapping[str, Any], override: Mapping[str, Any]) -> Dict[str, Any]:
-    """Deep merge: override wins, dicts are merged key by key.
-
-    This is what ``<rosparam command="load">`` of several files into one
-    namespace does, and how ros_canopen puts ``defaults`` under each node.
-    An empty entry (``node1:`` followed only by comments, as in the seed's
-    ros.yaml) adds nothing and does not erase what another file set.
-    """
-    out: Dict[str, Any] = dict(base)
-    for k, v in override.items():
-        if v is None and isinstance(out.get(k), Mapping):
-            continue
-        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
-            out[k] = merge_params(out[k], v)
-        else:
-            out[k] = v
-    return out
-
-
-def load_yaml_files(paths: Iterable[str]) -> Dict[str, Any]:
-    """Read YAML files in order and merge them like successive rosparam loads."""
-    import yaml  # only this helper needs it; the node gets its tree from ROS
-
-    tree: Dict[str, Any] = {}
-    for path in paths:
-        with open(path, "r", encoding="utf-8") as f:
-            data = yaml.safe_load(f)
-        if data is None:
-            continue
-        if not isinstance(data, Mapping):
-            raise ConfigError(path, "(top level)", "expected a mapping of keys, got %s" % type(data).__name__)
-        tree = merge_params(tree, data)
-    return tree
-
 
 _CANSEND_RE = re.compile(r"^([0-9a-fA-F]{3}|[0-9a-fA-F]{8})#((?:[0-9a-fA-F]{2}\.?){0,8}|R)$")
 
@@ -264,60 +73,11 @@ def parse_cansend(text: str) -> Tuple[int, bytes, bool]:
     return can_id, data, extended
 
 
-class _Reader:
-    """Typed access to one mapping with key paths for error messages."""
-
-    def __init__(self, source: str, warnings: List[str]) -> None:
-        self.source = source
-        self.warnings = warnings
-
-    def fail(self, key: str, problem: str) -> ConfigError:
-        return ConfigError(self.source, key, problem)
-
-    def mapping(self, value: Any, key: str, allow_none: bool = True) -> Mapping[str, Any]:
-        if value is None and allow_none:
-            return {}
-        if not isinstance(value, Mapping):
-            raise self.fail(key, "expected a mapping, got %s %r" % (type(value).__name__, value))
-        return value
-
-    def string(self, value: Any, key: str) -> str:
-        if not isinstance(value, str):
-            raise self.fail(key, "expected a string, got %s %r" % (type(value).__name__, value))
-        return value
-
-    def boolean(self, value: Any, key: str) -> bool:
-        if not isinstance(value, bool):
-            raise self.fail(key, "expected true or false, got %s %r" % (type(value).__name__, value))
-        return value
-
-    def integer(self, value: Any, key: str, lo: Optional[int] = None, hi: Optional[int] = None) -> int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise self.fail(key, "expected an integer, got %s %r" % (type(value).__name__, value))
-        if lo is not None and value < lo or hi is not None and value > hi:
-            raise self.fail(key, "%d out of range %s..%s" % (value, lo, hi))
-        return value
-
-    def number(self, value: Any, key: str, lo: float = 0.0) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(key, "expected a number, got %s %r" % (type(value).__name__, value))
-        value = float(value)
-        if not math.isfinite(value) or value < lo:
-            raise self.fail(key, "%r must be a finite number >= %g" % (value, lo))
-        return value
-
-    def unknown(self, mapping: Mapping[str, Any], known: Iterable[str], prefix: str) -> None:
-        known = set(known)
-        for k in mapping:
-            if k not in known:
-                self.warnings.append("%s: unknown option %s%s ignored" % (self.source, prefix, k))
-
-
 # --------------------------------------------------------------------------
 # layers
 
 
-def _load_bus(r: _Reader, params: Mapping[str, Any]) -> BusConfig:
+def _load_bus(r: ParamReader, params: Mapping[str, Any]) -> BusConfig:
     bus = r.mapping(params.get("bus"), "bus")
     r.unknown(bus, _BUS_KEYS, "bus/")
     device = r.string(bus.get("device", "can0"), "bus/device")
@@ -326,8 +86,8 @@ def _load_bus(r: _Reader, params: Mapping[str, Any]) -> BusConfig:
     except CanDeviceError as exc:
         raise r.fail("bus/device", str(exc))
     loopback = r.boolean(bus.get("loopback", False), "bus/loopback")
-    plugin = r.string(bus.get("driver_plugin", _SOCKETCAN_PLUGIN), "bus/driver_plugin")
-    if plugin != _SOCKETCAN_PLUGIN:
+    plugin = r.string(bus.get("driver_plugin", SOCKETCAN_PLUGIN), "bus/driver_plugin")
+    if plugin != SOCKETCAN_PLUGIN:
         r.warnings.append("%s: bus/driver_plugin %r ignored: bus/device chooses the adapter "
                           "(can0 for SocketCAN, INTERFACE:CHANNEL for others)" % (r.source, plugin))
     bitrate = None
@@ -343,21 +103,31 @@ def _load_bus(r: _Reader, params: Mapping[str, Any]) -> BusConfig:
     return BusConfig(device, loopback, plugin, allocator, bitrate)
 
 
-def _load_sync(r: _Reader, params: Mapping[str, Any]) -> SyncConfig:
+def _load_sync(r: ParamReader, params: Mapping[str, Any]) -> SyncConfig:
     sync = r.mapping(params.get("sync"), "sync")
     r.unknown(sync, _SYNC_KEYS, "sync/")
-    interval = r.number(sync.get("interval_ms", 0), "sync/interval_ms")
-    update = r.number(sync.get("update_ms", interval), "sync/update_ms")
+    # at most what a PDO's event timer (0x18xxsub5, UNSIGNED16 ms) can hold:
+    # update_ms goes there when there is no SYNC
+    interval = r.number(sync.get("interval_ms", 0), "sync/interval_ms", hi=MAX_PERIOD_MS)
+    update = r.number(sync.get("update_ms", interval), "sync/update_ms", hi=MAX_PERIOD_MS)
     if update == 0:
         raise r.fail("sync/update_ms", "must be set (> 0) when sync/interval_ms is 0 or absent")
     overflow = r.integer(sync.get("overflow", 0), "sync/overflow", 0, 240)
     if overflow == 1:
         raise r.fail("sync/overflow", "1 is not allowed by CiA 301: use 0 (no counter) or 2..240")
-    kernel_timer = r.boolean(sync.get("kernel_timer", False), "sync/kernel_timer")
+    kernel_timer = r.boolean(sync.get("kernel_timer", SyncConfig.kernel_timer), "sync/kernel_timer")
     return SyncConfig(interval, update, overflow, kernel_timer)
 
 
-def _load_heartbeat(r: _Reader, params: Mapping[str, Any]) -> Optional[HeartbeatConfig]:
+def _load_realtime(r: ParamReader, params: Mapping[str, Any]) -> RealtimeConfig:
+    rt = r.mapping(params.get("realtime"), "realtime")
+    r.unknown(rt, _REALTIME_KEYS, "realtime/")
+    return RealtimeConfig(r.boolean(rt.get("enabled", RealtimeConfig.enabled), "realtime/enabled"),
+                          r.integer(rt.get("priority", RealtimeConfig.priority), "realtime/priority", 1, 99),
+                          r.boolean(rt.get("lock_memory", RealtimeConfig.lock_memory), "realtime/lock_memory"))
+
+
+def _load_heartbeat(r: ParamReader, params: Mapping[str, Any]) -> Optional[HeartbeatConfig]:
     if params.get("heartbeat") is None:
         return None
     hb = r.mapping(params["heartbeat"], "heartbeat")
@@ -379,7 +149,7 @@ def _load_heartbeat(r: _Reader, params: Mapping[str, Any]) -> Optional[Heartbeat
     return HeartbeatConfig(rate, can_id, data, ext, msg)
 
 
-def _overlay(r: _Reader, value: Any, key: str) -> Tuple[Tuple[ObjectKey, str, str], ...]:
+def _overlay(r: ParamReader, value: Any, key: str) -> Tuple[Tuple[ObjectKey, str, str], ...]:
     overlay = r.mapping(value, key)
     out = []
     for k, v in overlay.items():
@@ -394,7 +164,7 @@ def _overlay(r: _Reader, value: Any, key: str) -> Tuple[Tuple[ObjectKey, str, st
     return tuple(out)
 
 
-def _resolve_eds(r: _Reader, node: Mapping[str, Any], prefix: str, resolver: Optional[Resolver]) -> Tuple[str, Optional[str]]:
+def _resolve_eds(r: ParamReader, node: Mapping[str, Any], prefix: str, resolver: Optional[Resolver]) -> Tuple[str, Optional[str]]:
     if "eds_file" not in node:
         raise r.fail(prefix + "eds_file", "required (path to the node's EDS/DCF file)")
     eds_file = os.path.expanduser(r.string(node["eds_file"], prefix + "eds_file"))
@@ -418,7 +188,7 @@ def _resolve_eds(r: _Reader, node: Mapping[str, Any], prefix: str, resolver: Opt
     return path, pkg
 
 
-def _units(r: _Reader, node: Mapping[str, Any], prefix: str) -> Dict[str, Expression]:
+def _units(r: ParamReader, node: Mapping[str, Any], prefix: str) -> Dict[str, Expression]:
     out = {}
     for k in _UNIT_KEYS:
         text = node.get(k, DEFAULT_UNITS[k])
@@ -433,7 +203,7 @@ def _units(r: _Reader, node: Mapping[str, Any], prefix: str) -> Dict[str, Expres
     return out
 
 
-def _publish(r: _Reader, value: Any, key: str, name: str) -> Tuple[PublishConfig, ...]:
+def _publish(r: ParamReader, value: Any, key: str, name: str) -> Tuple[PublishConfig, ...]:
     if value is None:
         return ()
     if isinstance(value, str):
@@ -451,7 +221,7 @@ def _publish(r: _Reader, value: Any, key: str, name: str) -> Tuple[PublishConfig
     return tuple(out)
 
 
-def _modes(r: _Reader, value: Any, key: str) -> Tuple[int, ...]:
+def _modes(r: ParamReader, value: Any, key: str) -> Tuple[int, ...]:
     """``modes: [CSP, 3]``: CiA 402 modes by number or short name."""
     if value is None:
         return ()
@@ -473,7 +243,7 @@ def _modes(r: _Reader, value: Any, key: str) -> Tuple[int, ...]:
 
 
 def _controller_modes(nodes: Tuple[NodeConfig, ...], controllers: Sequence[ControllerConfig],
-                      r: _Reader) -> Tuple[NodeConfig, ...]:
+                      r: ParamReader) -> Tuple[NodeConfig, ...]:
     """Give every node without a ``modes`` key the modes its controllers
     require; a compact PDO layout cannot be planned without any."""
     out = []
@@ -490,7 +260,7 @@ def _controller_modes(nodes: Tuple[NodeConfig, ...], controllers: Sequence[Contr
     return tuple(out)
 
 
-def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolver]) -> Tuple[NodeConfig, ...]:
+def _load_nodes(r: ParamReader, params: Mapping[str, Any], resolver: Optional[Resolver]) -> Tuple[NodeConfig, ...]:
     defaults = r.mapping(params.get("defaults"), "defaults")
     if "nodes" not in params or params["nodes"] in (None, {}, []):
         raise r.fail("nodes", "required: at least one node with id and eds_file")
@@ -540,6 +310,10 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
         halt_mode = r.string(node.get("halt_mode", HALT_MODES[0]), prefix + "halt_mode")
         if halt_mode not in HALT_MODES:
             raise r.fail(prefix + "halt_mode", "%r is not a halt mode; use one of %s" % (halt_mode, ", ".join(HALT_MODES)))
+        readings_every = r.integer(node.get("readings_every", 1), prefix + "readings_every", 1, 240)
+        if readings_every > 1 and pdo_layout != "compact":
+            raise r.fail(prefix + "readings_every", "needs pdo_layout: compact (a DCF layout keeps the DCF's "
+                         "own transmission types)")
         extra = {k: v for k, v in node.items() if k not in _NODE_KEYS}
         if "motor_layer" in node:
             extra["motor_layer"] = node["motor_layer"]
@@ -549,6 +323,7 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
             node_id=node_id, name=name, eds_file=path, eds_pkg=pkg, dcf_overlay=overlay,
             switching_state=switching, publish=publish, motor_allocator=allocator,
             extra=MappingProxyType(extra), pdo_layout=pdo_layout, modes=modes, halt_mode=halt_mode,
+            readings_every=readings_every,
             **units))
     if not nodes:
         raise r.fail("nodes", "no node configured")
@@ -564,7 +339,7 @@ def _load_nodes(r: _Reader, params: Mapping[str, Any], resolver: Optional[Resolv
     return tuple(nodes)
 
 
-def _load_controllers(r: _Reader, params: Mapping[str, Any], joints: Sequence[str]) -> Tuple[ControllerConfig, ...]:
+def _load_controllers(r: ParamReader, params: Mapping[str, Any], joints: Sequence[str]) -> Tuple[ControllerConfig, ...]:
     out = []
     for name, value in params.items():
         if name in _TOP_KEYS or not isinstance(value, Mapping) or "type" not in value:
@@ -614,7 +389,7 @@ def load_config(params: Mapping[str, Any], source: str, resolver: Optional[Resol
     (the node passes one built on rospkg); eds_file may also be absolute.
     """
     warnings: List[str] = []
-    r = _Reader(source, warnings)
+    r = ParamReader(source, warnings)
     params = r.mapping(params, "(top level)", allow_none=False)
     bus = _load_bus(r, params)
     sync = _load_sync(r, params)
@@ -639,4 +414,5 @@ def load_config(params: Mapping[str, Any], source: str, resolver: Optional[Resol
         if isinstance(v, Mapping) and "type" in v:
             continue
         warnings.append("%s: unknown option %s ignored" % (source, k))
-    return DriverConfig(source, bus, sync, heartbeat, nodes, joint_names, controllers, tuple(warnings))
+    realtime = _load_realtime(r, params)
+    return DriverConfig(source, bus, sync, heartbeat, nodes, joint_names, controllers, tuple(warnings), realtime)

@@ -13,7 +13,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from .trajectory import TrajectoryPoint
+from .trajectory_goal import TrajectoryPoint
 
 __all__ = ["PlanningError", "JointLimit", "group_states_from_srdf", "target_positions",
            "limits_from_joint_limits", "plan_point_to_point"]

@@ -19,8 +19,10 @@ from typing import Any, Callable, List, Mapping, Optional, Sequence, Tuple
 from .cia402 import OperationMode
 from .controllers import Controller, ControllerError, parse_joints, register_controller_type
 from .result import Result, fail, ok
-from .trajectory import (INVALID_GOAL, PATH_TOLERANCE_VIOLATED, CycleOutput, Outcome, Sample, TrajectoryError,
-                         TrajectoryExecutor, TrajectoryPoint, csp_readiness_problem, tolerances_from_constraints)
+from .trajectory import CycleOutput, Outcome, TrajectoryExecutor, csp_readiness_problem
+from .trajectory_goal import INVALID_GOAL, PATH_TOLERANCE_VIOLATED, TrajectoryError, TrajectoryPoint
+from .trajectory_spline import Sample
+from .trajectory_tolerances import tolerances_from_constraints
 
 __all__ = ["TYPE_NAME", "JointTrajectoryController", "interpolation_period_problem"]
 
@@ -87,19 +89,28 @@ class JointTrajectoryController(Controller):
         self.warnings: List[str] = []
         self.last_cycle: Optional[CycleOutput] = None
         self.last_actual: Optional[Sample] = None
+        # Per joint, the last target the driver accepted from this
+        # controller. Targets come from the trajectory, from these, or from
+        # the driver's own target (target_position: a command or a position
+        # it read over SDO), never from TxPDO readings: anyone on the bus can
+        # forge those. Readings only judge the tolerances.
+        self._sent: List[float] = [math.nan] * len(self.joints)
         self._not_ready = "not started"
         self._lock = threading.RLock()
 
     # --- lifecycle (controller manager) --------------------------------
     def starting(self, backend: Any) -> Result:
         try:
-            positions = [float(backend.joints[j].position) for j in self.joints]
+            positions = self._driver_targets([backend.joints[j] for j in self.joints])
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
-            return fail("joint positions unavailable: %s" % exc)
-        if not all(math.isfinite(p) for p in positions):
-            return fail("joint positions are not known yet (driver not initialised?)")
+            return fail("joint targets unavailable: %s" % exc)
+        unknown = [j for j, p in zip(self.joints, positions) if not math.isfinite(p)]
+        if unknown:
+            return fail("the driver holds no known position target for %s (driver not initialised?)"
+                        % ", ".join(unknown))
         with self._lock:
             self.executor.reset(self.clock(), positions)
+            self._sent = list(positions)
             self._not_ready = ""
             # Reject goals beyond the driver's joint limits up front instead of
             # aborting halfway when the driver refuses a target.
@@ -144,14 +155,28 @@ class JointTrajectoryController(Controller):
         """Start a goal (goal_id None: a topic command); returns the preempted goal's outcome.
 
         Raises TrajectoryError when the goal is rejected.
+
+        The goal is validated and built outside the lock the cycle takes
+        every SYNC (10,000 points take a while); the cycle then takes the
+        built goal, an immutable object, and splices it on at the time it
+        was accepted, from where the targets sent last were going.
         """
         with self._lock:
-            if not self.running:
-                raise TrajectoryError(INVALID_GOAL, "controller %s is not running" % self.name)
-            if self._not_ready:
-                raise TrajectoryError(INVALID_GOAL, self._not_ready)
-            return self.executor.submit(goal_id, joint_names, points, stamp, self.clock(), path_tolerance,
-                                        goal_tolerance, goal_time_tolerance)
+            self._check_ready()
+            now = self.clock()
+            holding = self.executor.query_state(max(now, stamp), now).positions
+            limits = dict(self.executor.position_limits)
+        prepared, tolerances = self.executor.prepare(joint_names, points, stamp, now, holding, path_tolerance,
+                                                     goal_tolerance, goal_time_tolerance, limits)
+        with self._lock:
+            self._check_ready()
+            return self.executor.accept(goal_id, prepared, tolerances, self.clock())
+
+    def _check_ready(self) -> None:
+        if not self.running:
+            raise TrajectoryError(INVALID_GOAL, "controller %s is not running" % self.name)
+        if self._not_ready:
+            raise TrajectoryError(INVALID_GOAL, self._not_ready)
 
     def cancel(self, goal_id: Any) -> bool:
         with self._lock:
@@ -161,7 +186,7 @@ class JointTrajectoryController(Controller):
         with self._lock:
             if not self.executor.started:
                 raise TrajectoryError(INVALID_GOAL, "controller %s has not started" % self.name)
-            return self.executor.query_state(t)
+            return self.executor.query_state(t, self.clock())
 
     # --- every SYNC (driver thread) ----------------------------------------
     def cycle(self, backend: Any) -> None:
@@ -174,16 +199,32 @@ class JointTrajectoryController(Controller):
                 self._cycle(backend, outcomes)
         except Exception as exc:  # a bug here must not kill the driver's cycle thread
             with self._lock:
-                outcome = self.executor.abort(self.clock(), self._actual_or_desired(),
-                                              PATH_TOLERANCE_VIOLATED, "internal error: %r" % (exc,))
+                outcome = self.executor.abort(self.clock(), self._last_sent(), PATH_TOLERANCE_VIOLATED,
+                                              "internal error: %r" % (exc,))
             outcomes.append(outcome)
         for outcome in outcomes:
             self._notify(outcome)
 
-    def _actual_or_desired(self) -> Sequence[float]:
-        if self.last_actual is not None:
-            return self.last_actual.positions
-        return self.executor.query_state(self.clock()).positions
+    def _last_sent(self) -> List[float]:
+        """The targets sent last (the desired ones for a joint never sent to)."""
+        desired = self.executor.query_state(self.clock()).positions
+        return [s if math.isfinite(s) else d for s, d in zip(self._sent, desired)]
+
+    def _driver_targets(self, joints: Sequence[Any]) -> List[float]:
+        """Where the driver holds each joint now: its own position target
+        (the last command, or the position it read over SDO when it enabled
+        the drive); the last target sent from here where it tells none."""
+        out = []
+        for joint, sent in zip(joints, self._sent):
+            target = float(getattr(joint, "target_position", math.nan))
+            out.append(target if math.isfinite(target) else sent)
+        return out
+
+    def _send(self, backend: Any, name: str, j: int, target: float) -> Any:
+        result = backend.set_command(name, "position", target)
+        if getattr(result, "success", False):
+            self._sent[j] = target
+        return result
 
     def _cycle(self, backend: Any, outcomes: List[Outcome]) -> None:
         now = self.clock()
@@ -201,23 +242,30 @@ class JointTrajectoryController(Controller):
             self._not_ready = problem
             out = self.executor.update(now, positions, velocities)
             self.last_cycle = out
-            for name, target, joint_problem in zip(self.joints, out.desired.positions, problems):
+            for j, (name, target, joint_problem) in enumerate(zip(self.joints, out.desired.positions, problems)):
                 if not joint_problem:
-                    backend.set_command(name, "position", target)
+                    self._send(backend, name, j, target)
             return
         if self._not_ready:
-            # Back after recover/re-enable: hold where the joints stand now,
-            # so nothing jumps (the driver re-enabled at the actual position).
-            self.executor.reset(now, positions)
+            # Back after recover/re-enable: hold where the driver holds the
+            # joints (recover enables at 0x6064 read over SDO), so nothing
+            # jumps and no reading becomes a target.
+            held = self._driver_targets(joints)
+            unknown = [n for n, p in zip(self.joints, held) if not math.isfinite(p)]
+            if unknown:
+                self._not_ready = "joint(s) %s: the driver's position target is unknown" % ", ".join(unknown)
+                return
+            self.executor.reset(now, held)
+            self._sent = list(held)
             self._not_ready = ""
         out = self.executor.update(now, positions, velocities)
         self.last_cycle = out
         outcomes.append(out.outcome)
-        for name, target in zip(self.joints, out.desired.positions):
-            result = backend.set_command(name, "position", target)
+        for j, (name, target) in enumerate(zip(self.joints, out.desired.positions)):
+            result = self._send(backend, name, j, target)
             if not getattr(result, "success", False):
                 reason = "joint '%s' refused target %.6f: %s" % (name, target, getattr(result, "message", ""))
-                outcomes.append(self.executor.abort(now, positions, PATH_TOLERANCE_VIOLATED, reason))
+                outcomes.append(self.executor.abort(now, self._last_sent(), PATH_TOLERANCE_VIOLATED, reason))
                 break
 
     def _notify(self, outcome: Optional[Outcome]) -> None:

@@ -24,8 +24,9 @@ _POLL_S = 0.1  # a wait also looks at the handle this often: a notify may come b
 
 
 class GoalClient:
-    """send_goal, wait_for_result, get_state, get_result, cancel_goal as
-    SimpleActionClient has them, for the latest goal sent."""
+    """send_goal, send_goal_and_wait, wait_for_result, get_state,
+    get_result, cancel_goal as SimpleActionClient has them, for the latest
+    goal sent."""
 
     def __init__(self, action: str, action_type: Any) -> None:
         self._client = actionlib.ActionClient(action, action_type)
@@ -62,6 +63,23 @@ class GoalClient:
                     return False
                 self._changed.wait(remaining)
         return True
+
+    def send_goal_and_wait(self, goal: Any, execute_timeout: rospy.Duration = rospy.Duration(),
+                           preempt_timeout: rospy.Duration = rospy.Duration()) -> int:
+        """Send ``goal`` and wait for its end, as SimpleActionClient does:
+        a goal not done within ``execute_timeout`` (zero: no limit) is
+        canceled, and its end awaited ``preempt_timeout`` more. The goal's
+        state."""
+        self.send_goal(goal)
+        if not self.wait_for_result(execute_timeout):
+            self.cancel_goal()
+            self.wait_for_result(preempt_timeout)
+        return self.get_state()
+
+    @property
+    def handle(self) -> Optional[actionlib.ClientGoalHandle]:
+        """actionlib's handle of the latest goal sent (None: none yet)."""
+        return self._handle
 
     def get_state(self) -> int:
         """The goal's actionlib_msgs/GoalStatus status; LOST when none was sent."""

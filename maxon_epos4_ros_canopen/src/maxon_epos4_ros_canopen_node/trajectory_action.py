@@ -32,8 +32,9 @@ from control_msgs.msg import (FollowJointTrajectoryAction, FollowJointTrajectory
 from control_msgs.srv import QueryTrajectoryState, QueryTrajectoryStateResponse
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-from maxon_epos4_ros_canopen.trajectory import RESULT_NAMES, SUCCESSFUL, Outcome, TrajectoryError, TrajectoryPoint
+from maxon_epos4_ros_canopen.trajectory import Outcome
 from maxon_epos4_ros_canopen.trajectory_controller import JointTrajectoryController
+from maxon_epos4_ros_canopen.trajectory_goal import RESULT_NAMES, SUCCESSFUL, TrajectoryError, TrajectoryPoint
 
 __all__ = ["RosTrajectoryController", "attach", "points_from_msg", "tolerances_from_msg"]
 

@@ -6,19 +6,17 @@ Imported by the executable test scripts next to it (not a test itself).
 from __future__ import annotations
 
 import os
-import struct
 import subprocess
 import threading
 import time
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import can
-import canopen
 import rospy
-from canopen.sdo.exceptions import SdoError
 import yaml
 from sensor_msgs.msg import JointState
 
+from maxon_epos4_ros_canopen.bus_watch import FrameRecorder, SdoObserver, poll
 from maxon_epos4_ros_canopen.can_device import enlarge_receive_buffer
 
 CLI_TIMEOUT = 120.0  # user-mode Linux runs ROS tools 6-10x slower than native
@@ -35,14 +33,35 @@ def run(args: Sequence[str], timeout: float = CLI_TIMEOUT) -> subprocess.Complet
     return subprocess.run(list(args), capture_output=True, text=True, timeout=timeout)
 
 
-def rosservice_call(*args: str) -> Dict[str, Any]:
-    """`rosservice call ARGS...`; the YAML answer as a dict (fails the test on a CLI error)."""
-    proc = run(["rosservice", "call"] + list(args))
-    if proc.returncode != 0:
-        raise AssertionError("rosservice call %s failed (%d): %s %s"
-                             % (" ".join(args), proc.returncode, proc.stdout, proc.stderr))
-    answer = yaml.safe_load(proc.stdout)
-    return answer if isinstance(answer, dict) else {"raw": proc.stdout}
+def rosservice_call(service: str, *args: str, cli: bool = False) -> Dict[str, Any]:
+    """`rosservice call SERVICE ARGS...` as a user types it; the YAML answer
+    as a dict (fails the test on an error). The arguments are taken as the
+    command takes them: each one read as YAML (so "!!str 6081" is a
+    string), the request filled from them in order, the answer printed as
+    YAML. ``cli``: run the command itself; otherwise the same steps in this
+    process, since the command's own start-up costs seconds in user-mode
+    Linux and the suite calls services some forty times."""
+    if cli:
+        proc = run(["rosservice", "call", service] + list(args))
+        if proc.returncode != 0:
+            raise AssertionError("rosservice call %s %s failed (%d): %s %s"
+                                 % (service, " ".join(args), proc.returncode, proc.stdout, proc.stderr))
+        text = proc.stdout
+    else:
+        import genpy
+        import rosservice
+        import std_msgs.msg
+        try:
+            service_class = rosservice.get_service_class_by_name(service)
+            request = service_class._request_class()
+            now = rospy.get_rostime()
+            genpy.message.fill_message_args(request, [yaml.safe_load(a if a != "" else "''") for a in args],
+                                            keys={"now": now, "auto": std_msgs.msg.Header(stamp=now)})
+            text = str(rospy.ServiceProxy(service, service_class)(request))
+        except (rosservice.ROSServiceException, rospy.ServiceException, genpy.MessageException) as e:
+            raise AssertionError("rosservice call %s %s failed: %s" % (service, " ".join(args), e)) from None
+    answer = yaml.safe_load(text)
+    return answer if isinstance(answer, dict) else {"raw": text}
 
 
 class Background:
@@ -61,46 +80,13 @@ class Background:
                 self.proc.wait()
 
 
-class SdoProbe:
+class SdoProbe(SdoObserver):
     """Reads a drive's object dictionary over SDO, independently of the driver,
-    so the test sees the drive's own values (the simulator's 0x607A etc.)."""
+    so the test sees the drive's own values (the simulator's 0x607A etc.);
+    only SDO answers reach its socket (bus_watch.SdoObserver)."""
 
     def __init__(self, device: str) -> None:
-        self.network = canopen.Network()
-        # Only SDO answers (0x580-0x5FF) reach this process: the kernel
-        # drops the rest, so the probe does not wake up for every SYNC and
-        # PDO of the drives it watches (in user-mode Linux every wake-up of
-        # the tests costs the driver and the simulator CPU).
-        self.network.connect(interface="socketcan", channel=device,
-                             can_filters=[{"can_id": 0x580, "can_mask": 0x780, "extended": False}])
-        self._nodes: Dict[int, canopen.RemoteNode] = {}
-
-    def _node(self, node_id: int) -> canopen.RemoteNode:
-        if node_id not in self._nodes:
-            node = canopen.RemoteNode(node_id, canopen.ObjectDictionary())
-            node.sdo.RESPONSE_TIMEOUT = 2.0
-            self.network.add_node(node)
-            self._nodes[node_id] = node
-        return self._nodes[node_id]
-
-    def read(self, node_id: int, index: int, subindex: int = 0, signed: bool = False,
-             within: float = 0.0) -> int:
-        """Three attempts (the driver may be using the same SDO channel a
-        moment), and more until ``within`` seconds have passed: a drive still
-        working off a backlog of frames answers late."""
-        last: Optional[Exception] = None
-        deadline = time.monotonic() + within
-        attempts = 0
-        while attempts < 3 or time.monotonic() < deadline:
-            attempts += 1
-            try:
-                data = self._node(node_id).sdo.upload(index, subindex)
-                return int.from_bytes(data, "little", signed=signed)
-            except (SdoError, can.CanError, struct.error) as exc:  # struct.error: a forged short answer
-                last = exc
-                time.sleep(0.5)
-        raise AssertionError("SDO read of node %d 0x%04X/%d failed (%d attempts): %s"
-                             % (node_id, index, subindex, attempts, last))
+        super().__init__(channel=device)
 
     def velocity(self, node_id: int) -> int:
         """0x606C velocity actual value."""
@@ -109,9 +95,6 @@ class SdoProbe:
     def position(self, node_id: int, within: float = 0.0) -> int:
         """0x6064 position actual value."""
         return self.read(node_id, 0x6064, signed=True, within=within)
-
-    def close(self) -> None:
-        self.network.disconnect()
 
 
 class DiagnosticsWatch:
@@ -174,9 +157,11 @@ def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeo
     """Wait until the controller manager lists every controller in `names`
     as running. Tests wait for this before their own SDO reads: the spawner's
     mode switch uses the drives' one SDO channel, and a second client's
-    answers on it break that switch. When the spawner could not start them
-    (a drive in error right after init), `driver/recover` and start them as
-    the spawner does, up to `attempts` times."""
+    answers on it break that switch. When another running controller holds
+    their joints (left so by a test before), stop it and start them at once,
+    as the spawner would; when the spawner could not start them (a drive in
+    error right after init), `driver/recover` and start them so, up to
+    `attempts` times. The joint state controller is never stopped."""
     from controller_manager_msgs.srv import ListControllers, SwitchController
     from std_srvs.srv import Trigger
     rospy.wait_for_service(ns + "/controller_manager/list_controllers", timeout=timeout)
@@ -185,21 +170,50 @@ def wait_for_running_controllers(names: Sequence[str], ns: str = "/maxon", timeo
     recover = rospy.ServiceProxy(ns + "/driver/recover", Trigger)
     wanted = [n.split("/")[-1] for n in names]
 
-    def stopped() -> List[str]:
-        states = {c.name.split("/")[-1]: (c.name, c.state) for c in listing().controller}
+    def stopped(controllers: Optional[List[Any]] = None) -> List[str]:
+        if controllers is None:
+            controllers = listing().controller
+        states = {c.name.split("/")[-1]: (c.name, c.state) for c in controllers}
         return [states[n][0] if n in states else n for n in wanted if states.get(n, ("", ""))[1] != "running"]
+
+    def running_others(controllers: List[Any]) -> List[Any]:
+        return [c for c in controllers if c.state == "running"
+                and c.name.split("/")[-1] not in wanted and not c.name.endswith("joint_state_controller")]
+
+    def running_or_blocked() -> bool:
+        """All wanted controllers run, or one is loaded but another running
+        one holds its joints: a test before left it so (the launch may have
+        served another test: tools/e2e_group.py), and the spawner cannot
+        start it. One listing per poll."""
+        controllers = listing().controller
+        if not stopped(controllers):
+            return True
+        held = {res for c in running_others(controllers) for r in c.claimed_resources for res in r.resources}
+        return any(c.name.split("/")[-1] in wanted and c.state != "running"
+                   and held.intersection(res for r in c.claimed_resources for res in r.resources)
+                   for c in controllers)
+
+    def take_over() -> None:
+        controllers = listing().controller
+        switch(start_controllers=stopped(controllers),
+               stop_controllers=[c.name for c in running_others(controllers)], strictness=1,
+               start_asap=False, timeout=0.0)
 
     for attempt in range(attempts):
         try:
-            wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names),
+            wait_until(running_or_blocked, "controllers %s running" % ", ".join(names),
                        timeout=timeout if attempt == 0 else 20.0)
+            if not stopped():
+                return
+            take_over()
+            wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names), timeout=20.0)
             return
         except AssertionError:
             missing = stopped()
             answer = recover()
             print("controllers %s not running (attempt %d); recover: %s %r"
                   % (missing, attempt + 1, answer.success, answer.message), flush=True)
-            switch(start_controllers=missing, stop_controllers=[], strictness=1, start_asap=False, timeout=0.0)
+            take_over()
     wait_until(lambda: not stopped(), "controllers %s running" % ", ".join(names), timeout=20.0)
 
 
@@ -212,70 +226,25 @@ def driver_pid(pattern: str = "canopen_motor_node") -> int:
     return pids[0]
 
 
-class BusRecorder:
+class BusRecorder(FrameRecorder):
     """Keeps every frame seen on the bus between start() and stop() (only
     those `can_filters` pass when given: the kernel filters, so a busy bus
     does not overflow the socket with frames nobody counts)."""
 
     def __init__(self, device: str, can_filters: Optional[List[Dict[str, Any]]] = None) -> None:
-        self.bus = can.Bus(interface="socketcan", channel=device, can_filters=can_filters)
+        bus = can.Bus(interface="socketcan", channel=device, can_filters=can_filters)
         # a recording may fall far behind on a loaded host: room for minutes of traffic
-        enlarge_receive_buffer(self.bus.socket, 64 * 1024 * 1024)
-        self.frames: List[can.Message] = []
-        self._lock = threading.Lock()
-        self._running = False
-        self._thread: Optional[threading.Thread] = None
-
-    def start(self) -> None:
-        # what the socket kept from before start() is not part of this recording
-        for _ in range(1000000):
-            if self.bus.recv(timeout=0.0) is None:
-                break
-        with self._lock:
-            self.frames = []
-        self._running = True
-        self._thread = threading.Thread(target=self._loop, daemon=True)
-        self._thread.start()
-
-    def _loop(self) -> None:
-        while self._running:
-            msg = self.bus.recv(timeout=0.2)
-            if msg is not None:
-                with self._lock:
-                    self.frames.append(msg)
+        enlarge_receive_buffer(bus.socket, 64 * 1024 * 1024)
+        super().__init__(bus, period=0.2)
 
     def wait_for(self, match: Callable[[can.Message], bool], what: str, count: int = 1,
                  timeout: float = WAIT) -> List[can.Message]:
         """The first `count` frames recorded since start() that `match`,
         once the recorder has them (fails after `timeout`)."""
-        found: List[can.Message] = []
-
-        def enough() -> bool:
-            with self._lock:
-                found[:] = [f for f in self.frames if match(f)]
-            return len(found) >= count
-
-        wait_until(enough, what, timeout)
-        return found[:count]
-
-    def stop(self) -> List[can.Message]:
-        self._running = False
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-        # On a loaded host the reader falls behind: what the socket still
-        # holds was on the bus before stop() too.
-        for _ in range(1000000):
-            msg = self.bus.recv(timeout=0.0)
-            if msg is None:
-                break
-            with self._lock:
-                self.frames.append(msg)
-        with self._lock:
-            return list(self.frames)
-
-    def close(self) -> None:
-        self._running = False
-        self.bus.shutdown()
+        found = self.matching(match, count, timeout, step=0.2)
+        if found is None:
+            raise AssertionError("timed out waiting for " + what)
+        return found
 
 
 def wait_for_syncs(device: str, count: int = 2) -> None:
@@ -397,6 +366,10 @@ class JointStates:
     def _cb(self, msg: JointState) -> None:
         self.msg = msg
 
+    def close(self) -> None:
+        """Stop listening: a subscriber costs the publishing node time too."""
+        self._sub.unregister()
+
     def value(self, joint: str, field: str = "position") -> Optional[float]:
         msg = self.msg
         if msg is None or joint not in msg.name:
@@ -406,23 +379,21 @@ class JointStates:
 
     def wait_for(self, joint: str, predicate: Callable[[float], bool], field: str = "position",
                  timeout: float = WAIT) -> Optional[float]:
-        deadline = time.monotonic() + timeout
-        value = None
-        while time.monotonic() < deadline and not rospy.is_shutdown():
-            value = self.value(joint, field)
-            if value is not None and predicate(value):
-                return value
-            time.sleep(0.1)
-        raise AssertionError("joint_states %s.%s never met the condition; last value %r" % (joint, field, value))
+        last: List[Optional[float]] = [None]
+
+        def met() -> bool:
+            last[0] = self.value(joint, field)
+            return last[0] is not None and predicate(last[0])
+
+        if poll(met, timeout, step=0.1, stop=rospy.is_shutdown):
+            return last[0]
+        raise AssertionError("joint_states %s.%s never met the condition; last value %r" % (joint, field, last[0]))
 
 
 def wait_until(condition: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return
-        time.sleep(0.2)
-    raise AssertionError("timed out waiting for " + what)
+    """bus_watch.poll that fails the test, naming `what`, after `timeout`."""
+    if not poll(condition, timeout, step=0.2):
+        raise AssertionError("timed out waiting for " + what)
 
 
 def operation_enabled(statusword: int) -> bool:

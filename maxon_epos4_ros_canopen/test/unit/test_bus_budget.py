@@ -100,9 +100,10 @@ def test_tool_prints_the_budget_of_the_shipped_layers(capsys):
               ("canopen_bus_layer.yaml", "node_layer_2dof_csp.yaml", "controller_2dof_csp.yaml")]
     assert main(layers, resolver=lambda pkg: PKG) == 0
     out = capsys.readouterr().out
-    # the CSP example's compact layout: 2 x 325 bits + SYNC 55 + heartbeat 13 in 10 ms
-    assert "base_link1_joint          1 compact  CSP" in out
-    assert "load 7.2 %" in out and "at most 24 under 80 %" in out
-    assert main(layers + ["--bitrate", "80000"], resolver=lambda pkg: PKG) == 1
+    # the CSP example's compact layout with the velocity every 5th SYNC:
+    # 2 x (115 + 115 + 95 / 5) bits + SYNC 55 + heartbeat 13 in 10 ms
+    assert "base_link1_joint          1 compact  CSP                 2.20" in out
+    assert "load 5.7 %" in out and "at most 31 under 80 % load, 39 at 100 %" in out
+    assert main(layers + ["--bitrate", "60000"], resolver=lambda pkg: PKG) == 1
     assert "WARNING: CAN bus budget" in capsys.readouterr().out
     assert main([os.path.join(PKG, "config", "no_such.yaml")]) == 2

@@ -1,8 +1,12 @@
 """canopen_motor_node's ROS interface, natively: the node and a virtual EPOS4
 share python-can's in-process bus (node_with_sim.py), a private roscore
-serves the parameters, and the test drives everything with the user's own
-command-line tools (rosservice, rostopic) and the `controller_manager spawn`
-command of compat/controller_manager.
+serves the parameters (node_session.py).
+
+Most steps go through one ROS client process (ros_client.py) that does what
+the user's command-line tools do with the same library calls; a few steps
+run the tools themselves, as the seeds type them, to prove they work:
+`rosservice call` (init, set_object), `rostopic pub -1`, `rostopic echo`
+and compat/controller_manager's `controller_manager spawn`.
 
 The same session runs on a real vcan0 in test/rostest/driver_1dof_ppm.test;
 this one gives the fast suite the node's adapter code (services, controller
@@ -10,37 +14,19 @@ manager, topics, diagnostics, bad input) without SocketCAN.
 """
 from __future__ import annotations
 
-import os
-import re
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import time
-import uuid
-from pathlib import Path
-from typing import Any, Callable, Dict, List, Sequence
+from typing import Any, Dict, List
 
 import pytest
 import yaml
 
-PKG = Path(__file__).resolve().parents[2]
-REPO = PKG.parent
-HERE = Path(__file__).resolve().parent
-CM_PKG = REPO / "compat" / "controller_manager"
+from node_session import CM_PKG, JOINT, PKG, REPO, Session, start_node
+
 POS_CTRL = "/maxon/canopen_motor/base_link1_joint_position_controller"
 VEL_CTRL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
-JOINT = "base_link1_joint"
-WAIT = 60.0  # generous: the node, a CLI tool per step and a loaded host
-CLI_TIMEOUT = 60.0
-# The node warns of a refused command at most once a second
-# (rospy.logwarn_throttle in nodes/canopen_motor_node, CanopenMotorNode._command).
-REFUSAL_WARNING_PERIOD = 1.0
-# rospy's console format (its default, set so the node's log lines carry
-# their time whatever the caller's environment says)
-LOG_FORMAT = "[${severity}] [${time}]: ${message}"
-REFUSAL_LINE = re.compile(r"^\[WARN\] \[([0-9.]+)\]: (\S+/command \[.*\] refused: .*)$", re.M)
 
 if shutil.which("roscore") is None or shutil.which("rosservice") is None:
     pytest.fail("ROS 1 command-line tools (roscore, rosservice) are not installed: run tools/setup.sh",
@@ -52,141 +38,11 @@ except ImportError:
     pytest.fail("message packages not built: run tools/setup.sh and source tools/env.sh", pytrace=False)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Session:
-    def __init__(self, tmp: Path) -> None:
-        self.env = dict(os.environ)
-        self.env["ROS_MASTER_URI"] = "http://localhost:%d" % free_port()
-        self.env["ROS_LOG_DIR"] = str(tmp / "log")
-        self.env["ROS_HOSTNAME"] = "localhost"
-        self.env["ROSCONSOLE_FORMAT"] = LOG_FORMAT
-        self.env["PYTHONPATH"] = os.pathsep.join([str(PKG / "src"), str(CM_PKG / "src"),
-                                                  self.env.get("PYTHONPATH", "")])
-        self.tmp = tmp
-        self.procs: List[subprocess.Popen] = []
-
-    def spawn(self, args: List[str], log: str) -> subprocess.Popen:
-        out = open(self.tmp / log, "w")
-        proc = subprocess.Popen(args, env=self.env, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.PIPE,
-                                text=True)
-        self.procs.append(proc)
-        return proc
-
-    def run(self, *args: str, timeout: float = CLI_TIMEOUT) -> subprocess.CompletedProcess:
-        return subprocess.run(list(args), env=self.env, capture_output=True, text=True, timeout=timeout)
-
-    def call(self, *args: str) -> Dict[str, Any]:
-        proc = self.run("rosservice", "call", *args)
-        assert proc.returncode == 0, "rosservice call %s: %s %s" % (args, proc.stdout, proc.stderr)
-        return yaml.safe_load(proc.stdout)
-
-    def wait(self, condition: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if condition():
-                return
-            time.sleep(0.2)
-        raise AssertionError("timed out waiting for %s; node log:\n%s" % (what, self.log("node.log")))
-
-    def log(self, name: str) -> str:
-        return self.text(name)[-4000:]
-
-    def text(self, name: str) -> str:
-        path = self.tmp / name
-        return path.read_text() if path.exists() else ""
-
-    def refusals(self) -> List[Any]:
-        """The node's refused-command warnings so far (re matches: stamp, text)."""
-        return list(REFUSAL_LINE.finditer(self.text("node.log")))
-
-    def refuse(self, values: str, reason: str, send: Callable[[], None]) -> str:
-        """send() a command the node must refuse; return the node's warning
-        "<controller>/command VALUES refused: ..." once it is in the node's
-        log and names `reason`, and the driver's cycle ran after it.
-
-        A refused command changes nothing, so there is nothing to wait for
-        but the warning: it shows the node took the command in and refused
-        it. After it, the simulator's `sync` answer (node_with_sim.py) says
-        a whole cycle ran: a command the node had queued all the same would
-        then be in the drive, where the caller's SDO read sees it."""
-        previous = self.refusals()
-        if previous:
-            # throttled: a warning within REFUSAL_WARNING_PERIOD of the
-            # previous one (by the node's clock, which stamped it) would not
-            # be logged, and this would wait in vain
-            quiet_from = float(previous[-1].group(1)) + REFUSAL_WARNING_PERIOD
-            self.wait(lambda: time.time() > quiet_from, "the node's refusal warning throttle to let a warning through")
-        count = len(previous)
-        send()
-        found: List[str] = []
-
-        def warned() -> bool:
-            found[:] = [m.group(2) for m in self.refusals()[count:] if "/command %s refused: " % values in m.group(2)]
-            return bool(found)
-
-        self.wait(warned, "the node's warning that it refused %s" % values)
-        assert reason in found[0], "refused for another reason than %r: %s" % (reason, found[0])
-        token = uuid.uuid4().hex[:8]
-        self.node.stdin.write("sync %s\n" % token)
-        self.node.stdin.flush()
-        self.wait(lambda: "synced %s" % token in self.text("node.log"), "two SYNCs after the refusal")
-        return found[0]
-
-    def alive(self, proc: subprocess.Popen) -> bool:
-        return proc.poll() is None
-
-    def close(self) -> None:
-        for proc in reversed(self.procs):
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-
-
 def get_value(session: Session, obj: str, cached: str = "false") -> str:
     answer = session.call("/maxon/driver/get_object", JOINT, "!!str " + obj, cached)
     assert answer["success"], answer
     return str(answer["value"])
 
-
-def controller_states(session: Session) -> Dict[str, str]:
-    answer = session.call("/maxon/controller_manager/list_controllers")
-    return {c["name"]: c["state"] for c in answer.get("controller") or []}
-
-
-def start_node(s: Session, layers: Sequence[str]) -> None:
-    """roscore, the example's layers (config/) on the parameter server, and the
-    node with a virtual EPOS4 (node-ID 1) on a private virtual channel; returns
-    once the driver's services are offered. The node is ``s.node``."""
-    s.spawn(["roscore", "-p", s.env["ROS_MASTER_URI"].rsplit(":", 1)[1]], "roscore.log")
-    s.wait(lambda: s.run("rosparam", "list").returncode == 0, "roscore")
-    params: Dict[str, Any] = {}
-    for name in layers:
-        with open(PKG / "config" / name) as stream:
-            for key, value in yaml.safe_load(stream).items():
-                if isinstance(value, dict) and isinstance(params.get(key), dict):
-                    params[key].update(value)
-                else:
-                    params[key] = value
-    channel = "node_test_" + uuid.uuid4().hex[:8]
-    params["bus"]["device"] = "virtual:" + channel
-    dcf = str(PKG / "config" / "epos4_node1.dcf")
-    params["nodes"]["node1"]["eds_file"] = dcf
-    del params["nodes"]["node1"]["eds_pkg"]
-    with open(s.tmp / "params.yaml", "w") as stream:
-        yaml.safe_dump(params, stream)
-    assert s.run("rosparam", "load", str(s.tmp / "params.yaml"), "/maxon/canopen_motor").returncode == 0
-    s.node = s.spawn([sys.executable, str(HERE / "node_with_sim.py"), channel, "1:" + dcf, "--",
-                      "__ns:=/maxon", "__name:=canopen_motor"], "node.log")
-    s.wait(lambda: "/maxon/driver/init" in s.run("rosservice", "list").stdout, "the driver's services")
 
 
 @pytest.fixture(scope="module")
@@ -202,33 +58,49 @@ def session(tmp_path_factory):
     s.close()
 
 
+def rosservice_call(session: Session, *args: str) -> Dict[str, Any]:
+    """`rosservice call ARGS...`, the tool itself in its own process."""
+    proc = session.run("rosservice", "call", *args)
+    assert proc.returncode == 0, "rosservice call %s: %s %s" % (args, proc.stdout, proc.stderr)
+    return yaml.safe_load(proc.stdout)
+
+
 def test_01_init_brings_up_the_controller_manager_and_controllers(session):
-    answer = session.call("/maxon/driver/init")
+    answer = rosservice_call(session, "/maxon/driver/init")  # as the seed types it
     assert answer["success"] is True, answer
-    session.wait(lambda: controller_states(session).get(POS_CTRL) == "running", "the spawner to start controllers")
-    assert controller_states(session)["/maxon/canopen_motor/joint_state_controller"] == "running"
+    session.wait(lambda: session.controller_states().get(POS_CTRL) == "running", "the spawner to start controllers")
+    assert session.controller_states()["/maxon/canopen_motor/joint_state_controller"] == "running"
     assert get_value(session, "6061") == "1"
-    services = session.run("rosservice", "list").stdout.split()
+    services = session.services()
     for name in ("list_controllers", "list_controller_types", "load_controller", "unload_controller",
                  "switch_controller", "reload_controller_libraries"):
         assert "/maxon/controller_manager/" + name in services
 
 
 def test_02_position_command_moves_the_joint(session):
+    # `rostopic pub -1` as the seed types it
     proc = session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "1000")
     assert proc.returncode == 0, proc.stderr
     session.wait(lambda: get_value(session, "607A") == "1000", "0x607A of the drive to be 1000")
 
+    states = []
+
     def at_target() -> bool:
-        echo = session.run("rostopic", "echo", "-n", "1", "/maxon/joint_states")
-        msg = yaml.safe_load(echo.stdout.split("---")[0]) if echo.returncode == 0 else None
+        msg = session.echo("/maxon/joint_states")
+        states.append((msg, time.time()))
         return bool(msg) and msg["name"] == [JOINT] and abs(msg["position"][0] - 1000.0) < 0.5
 
     session.wait(at_target, "joint_states to report 1000")
+    # stamped with when the drive's TPDOs arrived (wall clock): before the
+    # message was received, and not long before on a drive answering every SYNC
+    msg, received = states[-1]
+    stamp = msg["header"]["stamp"]["secs"] + msg["header"]["stamp"]["nsecs"] * 1e-9
+    assert received - 10.0 < stamp <= received, (stamp, received)
 
 
 def test_03_objects_round_trip_with_the_seed_syntax(session):
-    answer = session.call("/maxon/driver/set_object", JOINT, "!!str 6081", "!!str 1000", "false")
+    # `rosservice call` as the seed types it, with YAML tags
+    answer = rosservice_call(session, "/maxon/driver/set_object", JOINT, "!!str 6081", "!!str 1000", "false")
     assert answer["success"], answer
     assert get_value(session, "6081") == "1000"
     answer = session.call("/maxon/driver/set_object", JOINT, "6099sub02", "!!str 12", "false")
@@ -239,9 +111,9 @@ def test_03_objects_round_trip_with_the_seed_syntax(session):
 
 def test_04_ros_layer_objects_are_published_with_their_data_type(session):
     topic = "/maxon/%s_6041" % JOINT
-    session.wait(lambda: session.run("rostopic", "type", topic).stdout.strip() == "std_msgs/UInt16",
-                 "the statusword topic")
-    echo = session.run("rostopic", "echo", "-n", "1", topic)
+    session.wait(lambda: session.topic_type(topic) == "std_msgs/UInt16", "the statusword topic")
+    echo = session.run("rostopic", "echo", "-n", "1", topic)  # the tool itself
+    assert echo.returncode == 0, echo.stderr
     statusword = yaml.safe_load(echo.stdout.split("---")[0])["data"]
     assert statusword & 0x6F == 0x27  # operation enabled
 
@@ -258,7 +130,7 @@ def test_05_switch_to_velocity_controller_changes_the_mode(session):
                           % (POS_CTRL, VEL_CTRL))
     assert answer["ok"]
     assert get_value(session, "6061") == "1"
-    states = controller_states(session)
+    states = session.controller_states()
     assert states[VEL_CTRL] == "stopped" and states[POS_CTRL] == "running"
 
 
@@ -268,16 +140,14 @@ def test_05_switch_to_velocity_controller_changes_the_mode(session):
 ])
 def test_05b_cyclic_modes_through_the_generic_mode_switch(session, ctype, mode, topic_value, obj):
     name = "/maxon/canopen_motor/cyclic_%d_controller" % mode
-    assert session.run("rosparam", "set", name, "{type: %s, joint: %s, required_drive_mode: %d}"
-                       % (ctype, JOINT, mode)).returncode == 0
+    session.set_param(name, {"type": ctype, "joint": JOINT, "required_drive_mode": mode})
     assert session.call("/maxon/controller_manager/load_controller", name)["ok"]
     answer = session.call("/maxon/controller_manager/switch_controller",
                           "{start_controllers: ['%s'], stop_controllers: ['%s'], strictness: 2}" % (name, POS_CTRL))
     assert answer["ok"], session.log("node.log")
     try:
         assert get_value(session, "6061") == str(mode)
-        proc = session.run("rostopic", "pub", "-1", name + "/command", "std_msgs/Float64", "--", topic_value)
-        assert proc.returncode == 0, proc.stderr
+        session.publish(name + "/command", "std_msgs/Float64", topic_value)
         session.wait(lambda: get_value(session, obj) == topic_value, "0x%s to be %s" % (obj, topic_value))
     finally:
         answer = session.call("/maxon/controller_manager/switch_controller",
@@ -302,9 +172,8 @@ def test_06_bad_requests_are_answered(session, args, mention):
 
 
 def publish_once(session: Session, value: str) -> None:
-    """`rostopic pub -1` of one position command, as the user types it."""
-    proc = session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", value)
-    assert proc.returncode == 0, proc.stderr
+    """One position command, the value parsed as `rostopic pub` parses it."""
+    session.publish(POS_CTRL + "/command", "std_msgs/Float64", value)
 
 
 def test_07_non_finite_commands_do_not_reach_the_drive(session):
@@ -328,14 +197,15 @@ def test_08_halt_refuses_commands_recover_resumes(session):
     session.refuse("[5000.0]", "is halted", lambda: publish_once(session, "5000"))
     assert get_value(session, "607A") == before, "a command while halted reached the drive"
     assert session.call("/maxon/driver/recover")["success"]
-    assert not int(get_value(session, "6040"), 0) & 0x0100
-    session.run("rostopic", "pub", "-1", POS_CTRL + "/command", "std_msgs/Float64", "--", "2000")
+    # in profile position the halt bit stays until the drive took the held
+    # position as its set-point (no target of someone else's survives it)
+    session.wait(lambda: not int(get_value(session, "6040"), 0) & 0x0100, "the halt bit released after recover")
+    publish_once(session, "2000")
     session.wait(lambda: get_value(session, "607A") == "2000", "commands to work again after recover")
 
 
 def diagnostics(session: Session) -> List[Dict[str, Any]]:
-    echo = session.run("rostopic", "echo", "-n", "1", "/diagnostics")
-    msg = yaml.safe_load(echo.stdout.split("---")[0])
+    msg = session.echo("/diagnostics")
     return [s for s in msg["status"] if s["name"].endswith(JOINT)]
 
 

@@ -118,3 +118,41 @@ def test_operation_modes():
     assert cia402.mode_name(8) == "cyclic_sync_position"
     assert cia402.mode_name(0) == "no_mode"
     assert cia402.mode_name(-1) == "unknown_mode_-1"
+
+
+@pytest.mark.parametrize("code", [5, 6, 7, 8])
+def test_quick_stop_options_5_to_8_leave_quick_stop_powered(code):
+    """Transition 16: enable operation, never disable voltage, out of Quick
+    Stop Active to Operation Enabled and to every state beyond it."""
+    assert next_controlword(State.QUICK_STOP_ACTIVE, State.OPERATION_ENABLED, code) == 0x000F
+    assert next_controlword(State.QUICK_STOP_ACTIVE, State.SWITCHED_ON, code) == 0x000F
+    assert next_controlword(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED, code) == 0x0000
+
+
+@pytest.mark.parametrize("code", [0, 1, 2, 3, 4])
+def test_quick_stop_options_0_to_4_wait_for_the_drive(code):
+    """The drive ends its ramp in Switch On Disabled by itself: no command
+    (disable voltage would let a moving drive coast)."""
+    for target in (State.OPERATION_ENABLED, State.SWITCHED_ON, State.SWITCH_ON_DISABLED):
+        assert next_controlword(State.QUICK_STOP_ACTIVE, target, code) is None
+    # and from there on the walk is the usual one
+    assert next_controlword(State.SWITCH_ON_DISABLED, State.OPERATION_ENABLED, code) == 0x0006
+
+
+@pytest.mark.parametrize("code", [None, 1, 2, 5, 6])
+def test_every_planned_path_arrives_with_each_quick_stop_option(code):
+    targets = [State.SWITCH_ON_DISABLED, State.READY_TO_SWITCH_ON, State.SWITCHED_ON,
+               State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE]
+    for start, target in itertools.product(targets + [State.FAULT], targets):
+        state, previous, steps = start, 0, 0
+        while state != target:
+            cw = next_controlword(state, target, code)
+            if cw is None:  # options 0-4: the drive's own transition 12
+                assert state == State.QUICK_STOP_ACTIVE and code is not None and code <= 4
+                state = State.SWITCH_ON_DISABLED
+                continue
+            after = apply_controlword(state, cw, previous, 2 if code is None else code)
+            assert after != state, (start, target, state, cw)
+            state, previous = after, cw
+            steps += 1
+            assert steps < 6, (start, target)

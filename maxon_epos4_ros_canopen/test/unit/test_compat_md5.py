@@ -68,12 +68,13 @@ def generated(tmp_path_factory):
             (outdir / "__init__.py").write_text(
                 "".join("from ._%s import *\n" % Path(f).stem for f in files))
         (out / pkg / "__init__.py").write_text("")
-    sys.path.insert(0, str(out))
     for name in list(sys.modules):
         if name.split(".")[0] in ("controller_manager_msgs", "canopen_chain_node"):
             del sys.modules[name]
-    yield out
-    sys.path.remove(str(out))
+    # the generated packages are importable for this module's tests only
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(out))
+        yield out
     for name in list(sys.modules):
         if name.split(".")[0] in ("controller_manager_msgs", "canopen_chain_node"):
             del sys.modules[name]

@@ -3,8 +3,8 @@ import os
 
 import pytest
 
-from maxon_epos4_ros_canopen.config import (
-    ConfigError, load_config, load_yaml_files, merge_params, parse_cansend)
+from maxon_epos4_ros_canopen.config import ConfigError, load_config, parse_cansend
+from maxon_epos4_ros_canopen.config_reader import load_yaml_files, merge_params
 from maxon_epos4_ros_canopen.objects import ObjectKey
 
 FIXTURES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "fixtures")
@@ -213,6 +213,13 @@ def fails(resolver, match, files=("seed_001/can.yaml", "seed_001/node.yaml"), **
     ({"heartbeat": {"rate": 20, "msg": "hello"}}, "heartbeat/msg"),
     ({"heartbeat": {"msg": "77f#05", "rate": 20, "extra": 1}, "heartbeat_x": 1}, None),
     ({"heartbeat": {"rate": -1, "msg": "77f#05"}}, "heartbeat/rate"),
+    # numbers no float holds, or no period the drive can take: ConfigError, not OverflowError
+    ({"sync": {"interval_ms": 10 ** 400}}, "sync/interval_ms"),
+    ({"sync": {"interval_ms": -10 ** 400}}, "sync/interval_ms"),
+    ({"sync": {"interval_ms": 1e300}}, "sync/interval_ms"),
+    ({"sync": {"interval_ms": float("inf")}}, "sync/interval_ms"),
+    ({"sync": {"interval_ms": 10, "update_ms": 10 ** 400}}, "sync/update_ms"),
+    ({"heartbeat": {"rate": 10 ** 400, "msg": "77f#05"}}, "heartbeat/rate"),
 ])
 def test_wrong_values_name_the_key(resolver, overrides, key):
     if key is None:  # unknown keys are not errors

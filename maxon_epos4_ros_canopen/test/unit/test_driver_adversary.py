@@ -4,17 +4,26 @@ threads calling at the worst moment. What is checked is what the drive does
 (its object dictionary, read by the simulator's own client) and the frames
 on the bus."""
 import struct
+import sys
 import threading
+import traceback
+from typing import List
 
 import can
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
-from test_driver import DCF1, DCF2, J1, J2, Rig, ppm_ready, until
+from driver_support import DCF1, DCF2, J1, J2, ppm_ready
 
 # Rounds of calls each thread makes before and again after shutdown begins
 # (test_services_racing_shutdown_always_answer).
 RACE_ROUNDS = 5
+# A call whose SDO request was on the bus when shutdown closed the link gets
+# no answer: it ends after its tries (1 + 2 + 3 x the 1 s SDO timeout, see
+# ObjectAccess.sdo_transfer), longer on a loaded host. The bound for the
+# rounds after shutdown only limits how long a thread that got stuck takes
+# to fail.
+AFTER_SHUTDOWN_TIMEOUT = 30.0
 # The storm (test_eight_threads_storming_the_driver_lose_no_command): the
 # calls each thread makes and the driver's cycles meanwhile (about 12 s on
 # a 2-core host: the slowest thread, an SDO write, makes some 25 calls a
@@ -23,14 +32,12 @@ RACE_ROUNDS = 5
 STORM_CALLS = 100
 STORM_CYCLES = 1000
 STORM_TIMEOUT = 180.0
-JOIN_TIMEOUT = 10.0   # a thread told to stop ends within one call
+JOIN_TIMEOUT = 30.0   # a thread told to stop ends within one call (see AFTER_SHUTDOWN_TIMEOUT)
 
 
 @pytest.fixture
-def rig(request):
-    r = Rig("adv_" + request.node.name)
-    yield r
-    r.close()
+def rig(driver_rig):
+    return driver_rig
 
 
 def forge(rig, cob_id, data):
@@ -50,13 +57,14 @@ def test_forged_position_then_boot_up_does_not_move_the_drive(rig):
     start = rig.read(0x6064)
     forge(rig, 0x381, struct.pack("<ii", 798396, 0))   # forged TxPDO3 (position actual)
     forge(rig, 0x701, b"\x00")                         # then a boot-up
-    assert until(lambda: d.joints[J1].error is not None)
+    assert rig.until(lambda: d.joints[J1].error is not None)
     assert "rebooted" in d.joints[J1].error
     cycles = d.cycles
-    assert until(lambda: d.cycles > cycles + 30)
+    assert rig.until(lambda: d.cycles > cycles + 30)
     assert abs(rig.read(0x607A) - start) < 5
     assert abs(rig.read(0x6064) - start) < 50
-    assert rig.state() == State.OPERATION_ENABLED      # powered, holding
+    # powered, holding: CSP stops with the drive's own quick stop
+    assert rig.state() in (State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE)
     r = d.recover()
     assert r.success, r.message
     assert abs(rig.read(0x6064) - start) < 50
@@ -66,11 +74,11 @@ def test_forged_stopped_heartbeat_in_csp_holds_the_commanded_target(rig):
     d = csp_ready(rig, defaults={"dcf_overlay": {"6065": "4294967295"}})
     start = rig.read(0x6064)
     assert d.set_command(J1, "position", start + 1000).success
-    assert until(lambda: abs(rig.read(0x6064) - (start + 1000)) < 20)
+    assert rig.until(lambda: abs(rig.read(0x6064) - (start + 1000)) < 20)
     rig.drain()
     forge(rig, 0x381, struct.pack("<ii", 798396, 0))
     forge(rig, 0x701, b"\x04")
-    assert until(lambda: d.joints[J1].error is not None)
+    assert rig.until(lambda: d.joints[J1].error is not None)
     rig.had_the_chance()  # to send the forged position as the target
     # RxPDO 2 (0x301, 0x607A first) goes out every cycle in CSP
     targets = [struct.unpack_from("<i", f)[0] for f in rig.sent(0x301)]
@@ -88,19 +96,19 @@ def test_foreign_frames_on_the_drivers_rxpdo_ids_are_ignored(rig, payload):
     rig.drain()
     for _ in range(20):
         forge(rig, 0x301, payload)                      # the driver's own RxPDO 2
-    assert until(lambda: d.snapshot().foreign_frames >= 20)
-    assert until(lambda: d.cycles > cycles + 120)       # the cycle keeps running
+    assert rig.until(lambda: d.snapshot().foreign_frames >= 20)
+    assert rig.until(lambda: d.cycles > cycles + 120)       # the cycle keeps running
     # the drive heard the second master too; the driver neither took the
     # value in nor sent it on, and its own RxPDO (every 50 cycles) restores it
     frames = rig.sent(0x301)  # the sniffer hears the driver, not its own forged frames
     assert frames and all(len(f) == 8 and struct.unpack("<i", f[:4])[0] == target for f in frames)
-    assert until(lambda: rig.read(0x607A) == target)
+    assert rig.until(lambda: rig.read(0x607A) == target)
     assert abs(rig.read(0x6064) - start) < 50
     assert d.status()[0]["foreign_rpdo_frames"] >= 20
     r = d.recover()
     assert r.success, r.message
     assert d.set_command(J1, "position", start + 10).success
-    assert until(lambda: rig.read(0x607A) == start + 10)
+    assert rig.until(lambda: rig.read(0x607A) == start + 10)
     r = d.shutdown()
     assert r.success, r.message
     assert rig.state() == State.SWITCH_ON_DISABLED
@@ -110,14 +118,14 @@ def test_one_forged_fault_statusword_does_not_cut_a_moving_drives_power(rig):
     d = rig.start()
     assert d.init().success and d.switch_mode([J1], 3).success
     assert d.set_command(J1, "velocity", 900).success
-    assert until(lambda: abs(d.joints[J1].velocity - 900) < 10)
+    assert rig.until(lambda: abs(d.joints[J1].velocity - 900) < 10)
     rig.drain()
     # TxPDO1 with a statusword "fault". The receiver keeps the latest frame
     # of each TPDO, so the drive's own next TPDO1 may replace a forged one
     # before a cycle reads it: forge until the driver has seen one.
     for _ in range(100):
         forge(rig, 0x181, struct.pack("<Hb", 0x0208, 3))
-        if until(lambda: d.joints[J1].error is not None, 0.05):
+        if rig.until(lambda: d.joints[J1].error is not None, 0.05):
             break
     assert d.joints[J1].error is not None
     assert "fault" in d.joints[J1].error
@@ -126,7 +134,7 @@ def test_one_forged_fault_statusword_does_not_cut_a_moving_drives_power(rig):
     assert words and all(w & 0x000F == 0x000F for w in words)   # never disabled
     assert any(w & 0x0100 for w in words)                        # halted instead
     assert rig.state() == State.OPERATION_ENABLED
-    assert until(lambda: abs(rig.read(0x606C)) < 5)              # stopped on its ramp, powered
+    assert rig.until(lambda: abs(rig.read(0x606C)) < 5)              # stopped on its ramp, powered
     assert rig.state() == State.OPERATION_ENABLED
 
 
@@ -136,7 +144,7 @@ def test_undefined_heartbeat_states_break_nothing(rig, state_byte):
     forge(rig, 0x701, bytes([state_byte]))
     forge(rig, 0x701, b"")
     forge(rig, 0x081, b"\x10")                          # a short EMCY
-    assert until(lambda: d.joints[J1].counters.get("bad_emcy") == 1)
+    assert rig.until(lambda: d.joints[J1].counters.get("bad_emcy") == 1)
     assert d.joints[J1].error is None or state_byte == 0xFF
     r = d.shutdown()
     assert r.success, r.message
@@ -158,13 +166,22 @@ def test_set_object_refuses_the_objects_the_driver_owns(rig, obj, why):
 def test_heartbeat_time_written_at_run_time_is_watched(rig):
     d = ppm_ready(rig)
     assert d.set_object(J1, "1017", "100").success
-    assert until(lambda: d.joints[J1].heartbeat_ms == 100)
+    assert rig.until(lambda: d.joints[J1].heartbeat_ms == 100)
     rig.sim.inject_fault(1, "heartbeat_stop")
-    assert until(lambda: d.joints[J1].error is not None)
+    assert rig.until(lambda: d.joints[J1].error is not None)
     assert "heartbeat lost" in d.joints[J1].error
 
 
-def test_services_racing_shutdown_always_answer(rig):
+def stacks(threads: List[threading.Thread]) -> str:
+    """Where each of ``threads`` is now: what a thread that stopped making
+    rounds waits on."""
+    frames = sys._current_frames()
+    return "\n".join("%s:\n%s" % (t.name, "".join(traceback.format_stack(frames[t.ident])))
+                     for t in threads if t.ident in frames)
+
+
+def test_services_racing_shutdown_always_answer(real_driver_rig):
+    rig = real_driver_rig  # threads against the cycle: the inbox (docs/testing.md)
     d = ppm_ready(rig)
     answers, errors = [], []
     rounds = [0, 0, 0]   # rounds of calls made by each thread
@@ -184,10 +201,14 @@ def test_services_racing_shutdown_always_answer(rig):
         t.start()
     try:
         # every thread is calling when shutdown begins, and calls on after it
-        assert until(lambda: min(rounds) >= RACE_ROUNDS), rounds
+        assert rig.until(lambda: min(rounds) >= RACE_ROUNDS), rounds
         r = d.shutdown()
         after = list(rounds)
-        assert until(lambda: all(n >= a + RACE_ROUNDS for n, a in zip(rounds, after))), (after, rounds)
+        answering = rig.until(lambda: all(n >= a + RACE_ROUNDS for n, a in zip(rounds, after)),
+                              AFTER_SHUTDOWN_TIMEOUT)
+        if not answering:  # shown with the failure (pytest cuts a long assertion message short)
+            print("where the calling threads wait:\n" + stacks(threads), flush=True)
+        assert answering, (after, rounds)
     finally:
         stop.set()
         for t in threads:
@@ -199,7 +220,8 @@ def test_services_racing_shutdown_always_answer(rig):
     d.close()
 
 
-def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
+def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(real_driver_rig):
+    rig = real_driver_rig  # threads against the cycle: the inbox (docs/testing.md)
     d = ppm_ready(rig)
     start = rig.read(0x6064)
     in_cycle, go = threading.Event(), threading.Event()
@@ -221,17 +243,20 @@ def test_a_command_arriving_in_the_middle_of_a_cycle_is_not_lost(rig):
         assert d.set_command(J1, "position", value - 500).success
         assert d.set_command(J1, "position", value).success   # the last one wins
         go.set()
-        assert until(lambda: rig.read(0x607A) == value), (value, rig.read(0x607A))
-        assert until(lambda: abs(rig.read(0x6064) - value) < 5)
+        assert rig.until(lambda: rig.read(0x607A) == value), (value, rig.read(0x607A))
+        assert rig.until(lambda: abs(rig.read(0x6064) - value) < 5)
 
 
-def test_eight_threads_storming_the_driver_lose_no_command(rig):
+def test_eight_threads_storming_the_driver_lose_no_command(real_driver_rig):
     """Five threads post commands and three call services, as fast as they
     can, for a counted amount of work rather than a time: every thread
     makes STORM_CALLS calls and the driver runs STORM_CYCLES cycles (each
     cycle takes in what was posted meanwhile: the moments a command could
     be lost). STORM_TIMEOUT only bounds how long a stuck storm takes."""
-    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)))
+    rig = real_driver_rig  # threads against the cycle: the inbox (docs/testing.md)
+    # a 5 ms cycle: the storm counts cycles, and 1000 of them come sooner
+    # (the PDO watchdog's 1.5 s floor holds whatever the period)
+    d = rig.start(nodes=((1, DCF1, J1), (2, DCF2, J2)), sync={"interval_ms": 5, "overflow": 0})
     assert d.init().success and d.switch_mode([J1, J2], 3).success
     order_lock = threading.Lock()
     last = {}
@@ -271,7 +296,7 @@ def test_eight_threads_storming_the_driver_lose_no_command(rig):
         start = d.cycles
         for t in threads:
             t.start()
-        done = until(lambda: min(calls) >= STORM_CALLS and d.cycles - start >= STORM_CYCLES, STORM_TIMEOUT)
+        done = rig.until(lambda: min(calls) >= STORM_CALLS and d.cycles - start >= STORM_CYCLES, STORM_TIMEOUT)
         stop.set()
         for t in threads:
             t.join(JOIN_TIMEOUT)
@@ -282,16 +307,17 @@ def test_eight_threads_storming_the_driver_lose_no_command(rig):
         STORM_TIMEOUT, calls, d.cycles - start)
     assert not any(t.is_alive() for t in threads)
     assert errors == [] and unanswered == []
-    assert until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
+    assert rig.until(lambda: rig.read(0x60FF, node=1) == last[J1] and rig.read(0x60FF, node=2) == last[J2]), (
         last, rig.read(0x60FF, node=1), rig.read(0x60FF, node=2),
         [(a.command_value, a.last_refusal, dict(a.counters), a.error) for a in (d.joints[J1], d.joints[J2])])
     assert d.joints[J1].error is None and d.joints[J2].error is None
 
 
-def test_a_receive_error_does_not_poison_later_sdo_and_nmt(rig):
+def test_a_receive_error_does_not_poison_later_sdo_and_nmt(real_driver_rig):
     """A downed interface fails the notifier's read (SocketCAN: ENETDOWN).
     Once it is up again, SDO and NMT must work: canopen's Network re-raises
     the notifier's last receive error on every send unless it is cleared."""
+    rig = real_driver_rig  # the CAN notifier's thread meets a receive error (docs/testing.md)
     d = ppm_ready(rig)
     real_recv = d.bus.recv
     failed = threading.Event()
@@ -303,17 +329,18 @@ def test_a_receive_error_does_not_poison_later_sdo_and_nmt(rig):
         return real_recv(timeout)
     d.bus.recv = recv_failing_once
     assert failed.wait(5.0)
-    assert until(lambda: d.get_object(J1, "6064").success)
+    assert rig.until(lambda: d.get_object(J1, "6064").success)
     assert d.halt().success
     r = d.recover()
     assert r.success, r.message
     assert rig.state() == State.OPERATION_ENABLED
 
 
-def test_services_answer_while_another_client_polls_the_same_sdo_channel(rig):
+def test_services_answer_while_another_client_polls_the_same_sdo_channel(real_driver_rig):
     """A service tool (or a test's probe) polling the drive on the same SDO
     channel takes and gives answers meant for the other: the driver tries
     again after a random pause, and services go on answering."""
+    rig = real_driver_rig  # another client's thread polls the SDO channel in real time (docs/testing.md)
     import canopen
     d = ppm_ready(rig)
     net = canopen.Network()
@@ -338,6 +365,10 @@ def test_services_answer_while_another_client_polls_the_same_sdo_channel(rig):
         stop.set()
         poller.join(10.0)
         net.disconnect()
-    # a poller with no pause at all can still win a transfer now and then
-    # (0-1 of 60 measured); without the random pause the driver lost 5-8
-    assert answers.count(False) <= 2, answers.count(False)
+    # A poller with no pause at all can still win a transfer now and then:
+    # 0-1 of 60 on a quiet host, 3 beside two CPU hogs. The random pause that
+    # keeps it rare is tested in stepped time (test_driver.py,
+    # test_after_another_clients_answer_the_request_is_repeated_after_a_random_pause);
+    # here every call answers and at most one in ten is lost.
+    assert len(answers) == 60
+    assert answers.count(False) <= 6, answers.count(False)

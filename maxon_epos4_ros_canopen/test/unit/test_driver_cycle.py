@@ -6,15 +6,16 @@ import os
 import struct
 import time
 
-import canopen
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
 from maxon_epos4_ros_canopen.config import load_config
-from maxon_epos4_ros_canopen.driver.axis import REFRESH_CYCLES, Axis, Binding, holding_controlword
+from maxon_epos4_ros_canopen.driver.axis import Axis, Binding, holding_controlword
+from maxon_epos4_ros_canopen.driver.outputs import REFRESH_CYCLES
 from maxon_epos4_ros_canopen.driver.pdo import RxPdo, TpdoReceiver, TxPdo, enabled_maps
 from maxon_epos4_ros_canopen.driver.plan import plan_node
 from maxon_epos4_ros_canopen.limits import JointLimits
+from maxon_epos4_ros_canopen.objects import load_dictionary
 
 DCF = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "epos4_node1.dcf")
 
@@ -39,7 +40,7 @@ class Harness:
                                         "pos_from_device": "obj6064", "vel_to_device": "vel",
                                         "vel_from_device": "obj606C"}, **node)}}
         cfg = load_config(params, "test")
-        od = canopen.import_od(DCF, 1)
+        od = load_dictionary(DCF, 1)  # parsed once for every test, as the driver's
         plan = plan_node(cfg.nodes[0], od, cfg.sync, "test")
         rx = tuple(RxPdo(od, m) for m in enabled_maps(plan.rx))
         tx = tuple(TxPdo(od, m) for m in enabled_maps(plan.tx))
@@ -136,9 +137,11 @@ def ppm_enabled(h):
     j.ready = True
     j.active_mode = 1
     j.hold(500)
-    # the reset target goes through the handshake once
-    for sw in (SW_ENABLED, SW_ENABLED, SW_ENABLED_ACK, SW_ENABLED):
+    # the hold targets go out (halt bit on), then the held position goes
+    # through the handshake once, and the halt bit drops after it
+    for sw in (SW_ENABLED, SW_ENABLED, SW_ENABLED, SW_ENABLED_ACK, SW_ENABLED):
         h.cycle(sw=sw)
+    assert h.controlword() == 0x002F
     h.frames.clear()
     return j
 
@@ -294,7 +297,7 @@ def test_a_forged_position_never_becomes_a_target(h):
     h.cycle(sw=SW_ENABLED, pos=100)
     assert h.target() == 100
     h.cycle(sw=SW_ENABLED, pos=798396)         # forged TxPDO3
-    j.on_heartbeat(b"\x04", 100.0)            # then a STOPPED heartbeat
+    j.inputs.on_heartbeat(b"\x04", 100.0, j.ready)  # then a STOPPED heartbeat
     j.watch(100.0, h.n, 0.01, 1.5, 50)
     assert j.error and "STOPPED" in j.error
     for _ in range(3):
@@ -306,15 +309,15 @@ def test_a_forged_position_never_becomes_a_target(h):
     (b"\x78", "undefined_nmt_state"), (b"", "bad_heartbeat"), (b"\x05\x00", "bad_heartbeat")])
 def test_odd_heartbeats_are_counted_not_taken(h, frame, counter):
     j = enabled(h)
-    j.on_heartbeat(frame, 50.0)
-    assert j.counters[counter] == 1 and j.nmt_state == "OPERATIONAL"
+    j.inputs.on_heartbeat(frame, 50.0, j.ready)
+    assert j.counters[counter] == 1 and j.snapshot().nmt_state == "OPERATIONAL"
 
 
 def test_undefined_statusword_and_short_emcy_are_counted(h):
     j = enabled(h)
     h.cycle(sw=0x0003)                 # no CiA 402 state has these bits
     assert j.counters["undefined_statusword"] == 1 and j.state == State.OPERATION_ENABLED and not j.error
-    j.on_emcy(b"\x10")
+    j.inputs.on_emcy(b"\x10")
     assert j.counters["bad_emcy"] == 1
 
 
@@ -373,7 +376,7 @@ def test_after_clearing_an_error_the_first_controlword_holds_what_the_drive_said
     h.axis.write(lambda cob, data: h.last.update({cob: data}))   # before any fresh statusword
     assert h.controlword() & 0x8F == 0x0002
     h.cycle(sw=SW_QUICK_STOP)
-    assert h.controlword() == 0x0000  # the walk to enable starts from quick stop active
+    assert h.controlword() == 0x000F  # from quick stop active by transition 16 (0x605A = 6)
 
 
 def test_an_rxpdo_value_goes_out_once_when_it_changes_and_again_with_each_refresh(h):
@@ -403,7 +406,7 @@ def test_a_snapshot_keeps_its_values_after_the_axis_moves_on():
     h.cycle(sw=SW_SWITCH_ON_DISABLED, pos=100)
     before = h.axis.snapshot()
     h.cycle(pos=200)
-    h.axis._count("bad_tpdo")
+    h.axis.counters.add("bad_tpdo")
     after = h.axis.snapshot()
     assert (before.position, before.raw_position, before.counters["bad_tpdo"]) == (100, 100, 0)
     assert (after.position, after.raw_position, after.counters["bad_tpdo"]) == (200, 200, 1)
@@ -430,12 +433,12 @@ def test_an_emcy_storm_is_a_few_log_lines_a_second_and_a_count(h, caplog):
     # and a storm of them would starve it
     with caplog.at_level("INFO", logger="maxon_epos4_ros_canopen.driver"):
         for code in range(1, 201):
-            h.axis.on_emcy(struct.pack("<HB5s", code, 0x01, bytes(5)), now=5.0)
-            h.axis.on_emcy(bytes(8), now=5.0)   # and error resets
+            h.axis.inputs.on_emcy(struct.pack("<HB5s", code, 0x01, bytes(5)), now=5.0)
+            h.axis.inputs.on_emcy(bytes(8), now=5.0)   # and error resets
     lines = [r for r in caplog.records if "EMCY" in r.getMessage()]
     assert 1 <= len(lines) <= 5
     assert h.axis.counters["emcy_not_logged"] == 400 - len(lines)
     caplog.clear()
     with caplog.at_level("INFO", logger="maxon_epos4_ros_canopen.driver"):
-        h.axis.on_emcy(struct.pack("<HB5s", 0x8611, 0x81, bytes(5)), now=6.5)  # a second later: logged
+        h.axis.inputs.on_emcy(struct.pack("<HB5s", 0x8611, 0x81, bytes(5)), now=6.5)  # a second later: logged
     assert any("0x8611" in r.getMessage() for r in caplog.records)

@@ -10,17 +10,15 @@ import pytest
 from maxon_epos4_ros_canopen.cia402 import State, state_from_statusword
 from maxon_epos4_ros_canopen.driver.modes import CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION
 from maxon_epos4_ros_canopen.driver.plan import DRIVER_OWNED
-from test_driver import DCF1, DCF2, J1, J2, Rig, until
+from driver_support import DCF1, DCF2, J1, J2
 
 SYNC = 0x080
 SDO_UPLOAD_ANSWER = 0x40  # command specifier bits of an SDO upload answer (expedited or not)
 
 
 @pytest.fixture
-def rig(request):
-    r = Rig("init_" + request.node.name)
-    yield r
-    r.close()
+def rig(driver_rig):
+    return driver_rig
 
 
 def _field(plan, key):
@@ -87,7 +85,7 @@ def test_drives_are_enabled_over_sdo_before_the_first_sync(rig):
         assert a.ready and a.attached and not a.error
         assert a.held_state == State.OPERATION_ENABLED and a.target_state is None
         plan = a.plan
-        assert until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 3)
+        assert rig.until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 3)
         # no cycle walked the drive through the CiA 402 states: from the very
         # first RxPDO the controlword is enable operation
         assert set(_values(rig, plan, CONTROLWORD)) == {0x000F}
@@ -106,7 +104,7 @@ def test_a_mode_requested_before_init_is_set_before_enabling(rig):
     a = d.joints[J1]
     assert a.active_mode == 8 and a.mode_display == 8
     plan = a.plan
-    assert until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 3)
+    assert rig.until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 3)
     assert set(_values(rig, plan, CONTROLWORD)) == {0x000F}
     assert d.set_command(J1, "position", 0.0).success
 
@@ -160,7 +158,7 @@ def test_init_of_127_drives_in_one_process(rig):
         # one DCF for all: each drive still got its own $NODEID COB-IDs
         assert rig.read(0x1800, 1, node=nid) & 0x7FF == 0x180 + nid, name
     plan = d.joints["j127"].plan
-    assert until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 2)
+    assert rig.until(lambda: len(_values(rig, plan, CONTROLWORD)) >= 2)
     for nid, _, name in nodes:
         assert set(_values(rig, d.joints[name].plan, CONTROLWORD)) == {0x000F}, name
 
@@ -198,7 +196,7 @@ def test_init_reads_nothing_it_writes_and_each_state_once(rig):
         # and the first RxPDOs still carry what the drive holds: the DCF's
         # values of the objects they map, read by an independent client
         plan = d.joints[name].plan
-        assert until(lambda: all(rig.sent(m.cob_id) for m in plan.rx if m.enabled))
+        assert rig.until(lambda: all(rig.sent(m.cob_id) for m in plan.rx if m.enabled))
         for m in plan.rx:
             if not m.enabled:
                 continue
@@ -225,7 +223,7 @@ def test_a_pdo_the_plan_leaves_off_is_only_invalidated(rig):
             assert not rig.read(0x1800 + m.number - 1, 1) & 0x80000000
     # what runs is exactly the planned TxPDOs
     rig.drain()
-    assert until(lambda: len(rig.sent(SYNC)) >= 3)
+    assert rig.until(lambda: len(rig.sent(SYNC)) >= 3)
     got = {m.arbitration_id for m in rig._collect() if 0x180 <= m.arbitration_id < 0x500 and m.arbitration_id & 0x7F == 1}
     assert {m.cob_id for m in plan.tx if m.enabled} <= got
     assert not got & {m.cob_id for m in plan.tx if not m.enabled}

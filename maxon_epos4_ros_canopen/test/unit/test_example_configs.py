@@ -15,7 +15,8 @@ from typing import Dict, List
 import pytest
 
 from maxon_epos4_ros_canopen import controllers as cm
-from maxon_epos4_ros_canopen.config import load_config, load_yaml_files
+from maxon_epos4_ros_canopen.config import load_config
+from maxon_epos4_ros_canopen.config_reader import load_yaml_files
 
 PKG = Path(__file__).resolve().parents[2]
 LAUNCHES = ["maxon_epos4_canopen_motor_1dof_ppm.launch", "maxon_epos4_canopen_motor_1dof_ppm_hm.launch",

@@ -111,3 +111,14 @@ def test_feedback_of_another_goal_is_not_passed_on(server):
     for handle, _, feedback_cb in client._client.callbacks:
         feedback_cb(handle, "feedback of %s" % ("first" if handle is first else "second"))
     assert seen == ["feedback of second"]
+
+
+def test_send_goal_and_wait_keeps_an_answer_at_once_and_cancels_on_timeout(server):
+    rejected, running = _Handle(True, GoalStatus.REJECTED, "bad goal"), _Handle(False, GoalStatus.ACTIVE)
+    server.handles = [rejected, running]
+    client = goal_client.GoalClient("/locomotion_control", object)
+    assert client.send_goal_and_wait("goal", rospy.Duration(5.0)) == GoalStatus.REJECTED
+    assert client.handle is rejected and client.get_result() == "bad goal"
+    server.at_once = False
+    assert client.send_goal_and_wait("goal", rospy.Duration(0.1), rospy.Duration(0.1)) == GoalStatus.ACTIVE
+    assert client.handle is running and running.canceled and not rejected.canceled

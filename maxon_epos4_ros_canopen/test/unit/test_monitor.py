@@ -18,8 +18,10 @@ from pathlib import Path
 import can
 import pytest
 
-from test_sim_support import NODE1, NodeConfig, Rig
-from maxon_epos4_ros_canopen import monitor as mon  # noqa: E402 (path set by test_sim_support)
+from sim_support import NODE1, NodeConfig
+from maxon_epos4_ros_canopen import monitor as mon
+from maxon_epos4_ros_canopen import monitor_cli as cli
+from maxon_epos4_ros_canopen.objects import load_dictionary
 
 PKG = Path(__file__).resolve().parents[2]
 SCRIPT = PKG / "scripts" / "canopen_monitor"
@@ -31,13 +33,13 @@ def frame(cob: int, data: bytes = b"", **kw) -> can.Message:
 
 @pytest.fixture(scope="module")
 def decoder() -> mon.Decoder:
-    return mon.Decoder({1: mon.load_dictionary(NODE1, 1)}, mon.default_dictionary())
+    return mon.Decoder({1: load_dictionary(NODE1, 1)}, cli.default_dictionary())
 
 
 # --- frames the virtual EPOS4 and a canopen client produce -------------------------
 
-def test_simulator_traffic_decodes_to_states_objects_and_values():
-    rig = Rig([NodeConfig(1, NODE1)])
+def test_simulator_traffic_decodes_to_states_objects_and_values(sim_rig):
+    rig = sim_rig([NodeConfig(1, NODE1)])
     try:
         node = rig.remote(1)
         rig.drain()
@@ -58,7 +60,7 @@ def test_simulator_traffic_decodes_to_states_objects_and_values():
         assert rig.wait(lambda: seen(0x181) and seen(0x081))
     finally:
         rig.close()
-    d = mon.Decoder({1: mon.load_dictionary(NODE1, 1)})
+    d = mon.Decoder({1: load_dictionary(NODE1, 1)})
     texts = [d.decode(f).text for f in frames]
     joined = "\n".join(texts)
     assert "node 1 SDO write Producer heartbeat time (1017) = 50 (0x32)" in joined
@@ -78,11 +80,11 @@ def test_simulator_traffic_decodes_to_states_objects_and_values():
     assert not any("MALFORMED" in d.decode(f).kind for f in frames)
 
 
-def test_pdo_mapping_read_from_the_drive():
-    rig = Rig([NodeConfig(1, NODE1)])
+def test_pdo_mapping_read_from_the_drive(sim_rig):
+    rig = sim_rig([NodeConfig(1, NODE1)])
     try:
         node = rig.remote(1)
-        d = mon.Decoder({}, mon.default_dictionary())  # no DCF: names only
+        d = mon.Decoder({}, cli.default_dictionary())  # no DCF: names only
         lines = mon.read_pdo_mapping(node.sdo.upload, 1, d)
         rig.drain()
         rig.send(0x000, b"\x01\x01")
@@ -151,7 +153,7 @@ def test_hand_made_frames(decoder, msg, text):
 
 def test_any_frame_at_all_decodes_to_a_line():
     rng = random.Random(1234)
-    d = mon.Decoder({1: mon.load_dictionary(NODE1, 1)}, mon.default_dictionary())
+    d = mon.Decoder({1: load_dictionary(NODE1, 1)}, cli.default_dictionary())
     kinds = set()
     for cob in itertools.chain(range(0x800), (0x1FFFFFFF, 0x18FEF100)):
         for length in range(9):
@@ -193,7 +195,7 @@ def test_filters_by_node_and_object(decoder):
 
 
 def test_bus_load_line_counts_bits_like_canbusload():
-    load = mon.BusLoad("can0", 1000000)
+    load = cli.BusLoad("can0", 1000000)
     for _ in range(1000):
         load.add(frame(0x181, bytes(8)))  # 47 + 64 = 111 bits
     line = load.line(1.0)
@@ -204,16 +206,16 @@ def test_bus_load_line_counts_bits_like_canbusload():
 def test_candump_log_lines_round_trip():
     msgs = [frame(0x181, b"\x37\x06", timestamp=1700000000.25), frame(0x701, is_remote_frame=True, timestamp=1.0),
             frame(0x18FF0001, b"\x01", extended=True, timestamp=2.0), frame(0x080, timestamp=3.5)]
-    lines = [mon.candump_line(m, "can0") for m in msgs]
+    lines = [cli.candump_line(m, "can0") for m in msgs]
     assert lines == ["(1700000000.250000) can0 181#3706", "(1.000000) can0 701#R",
                      "(2.000000) can0 18FF0001#01", "(3.500000) can0 080#"]
     for m, line in zip(msgs, lines):
-        back, device = mon.parse_candump_line(line)
+        back, device = cli.parse_candump_line(line)
         assert device == "can0" and back.arbitration_id == m.arbitration_id and bytes(back.data) == bytes(m.data)
         assert back.is_remote_frame == m.is_remote_frame and back.is_extended_id == m.is_extended_id
     for bad in ("", "181#00", "(1.0) can0 181#0", "(1.0) can0 181#000102030405060708"):
         with pytest.raises(ValueError):
-            mon.parse_candump_line(bad)
+            cli.parse_candump_line(bad)
 
 
 def test_live_session_on_virtual_bus_prints_and_records(tmp_path):
@@ -222,7 +224,7 @@ def test_live_session_on_virtual_bus_prints_and_records(tmp_path):
     out, stop = io.StringIO(), threading.Event()
     argv = ["virtual:" + channel, "--dcf", "1:" + NODE1, "--node", "1", "--record", str(record),
             "--load-interval", "0.2"]
-    session = threading.Thread(target=mon.main, args=(argv, out, stop))
+    session = threading.Thread(target=cli.main, args=(argv, out, stop))
     session.start()
     sender = can.Bus(interface="virtual", channel=channel)
     try:

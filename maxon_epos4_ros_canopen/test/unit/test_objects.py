@@ -57,7 +57,8 @@ def _var(index, sub, dtype, access="rw", lo=None, hi=None):
     (dt.UNSIGNED32, "4294967295", 0xFFFFFFFF),
     (dt.INTEGER8, "-3", -3),
     (dt.INTEGER32, "-0x10", -16),
-    (dt.INTEGER16, "12.0", 12),
+    (dt.INTEGER16, "+12", 12),
+    (dt.INTEGER16, " 0X1f ", 31),
     (dt.REAL32, "1.5", 1.5),
     (dt.BOOLEAN, "true", True),
     (dt.BOOLEAN, "0", False),
@@ -76,6 +77,18 @@ def test_encode(dtype, text, value):
     (dt.UNSIGNED16, "abc", "not an integer"),
     (dt.UNSIGNED16, "1.5", "not an integer"),
     (dt.UNSIGNED16, "nan", "not an integer"),
+    # an integer object takes decimal or 0x hex, nothing that passes through float
+    (dt.UNSIGNED16, "12.0", "not an integer"),
+    (dt.UNSIGNED16, "9.9999999999999999e2", "not an integer"),
+    (dt.UNSIGNED16, "1e3", "not an integer"),
+    (dt.UNSIGNED16, "1_000", "not an integer"),
+    (dt.UNSIGNED16, "\u0661\u0660\u0660\u0660", "not an integer"),   # Arabic-Indic 1000
+    (dt.UNSIGNED16, "\uff11\uff10", "not an integer"),                 # fullwidth 10
+    (dt.UNSIGNED16, "0x", "not an integer"),
+    (dt.UNSIGNED16, "--1", "not an integer"),
+    (dt.UNSIGNED16, "", "not an integer"),
+    (dt.UNSIGNED16, "65536", "allowed 0..65535"),
+    (dt.INTEGER32, "-2147483649", "allowed -2147483648..2147483647"),
     (dt.REAL32, "inf", "not a finite number"),
     (dt.REAL32, "nan", "not a finite number"),
     (dt.REAL32, "1e39", "out of range"),

@@ -11,7 +11,7 @@ from maxon_epos4_ros_canopen.config import ConfigError, load_config
 from maxon_epos4_ros_canopen.driver.plan import (CONTROLWORD, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL,
                                                  STATUSWORD, TARGET_POSITION, TARGET_TORQUE, TARGET_VELOCITY,
                                                  VELOCITY_ACTUAL, dcf_maps, plan_node)
-from maxon_epos4_ros_canopen.objects import ObjectKey
+from maxon_epos4_ros_canopen.objects import ObjectKey, load_dictionary
 from maxon_epos4_ros_canopen.sim.runner import NodeConfig as SimNode
 from maxon_epos4_ros_canopen.sim.runner import Simulator
 
@@ -28,7 +28,7 @@ def plan(node=None, top=None):
     params.update(top or {})
     cfg = load_config(params, "test")
     n = cfg.nodes[0]
-    return plan_node(n, canopen.import_od(n.eds_file, n.node_id), cfg.sync, "test")
+    return plan_node(n, load_dictionary(n.eds_file, n.node_id), cfg.sync, "test")
 
 
 def frames(maps):
@@ -141,14 +141,7 @@ def test_compact_layout_on_the_wire():
         p = plan({"pdo_layout": "compact", "modes": [8]})
         node = canopen.RemoteNode(1, canopen.import_od(DCF1, 1))
         network.add_node(node)
-        for plans, maps in ((p.rx, node.rpdo.map), (p.tx, node.tpdo.map)):
-            for mp in plans:
-                m = maps[mp.number]
-                m.clear()
-                for key, bits in mp.entries:
-                    m.add_variable(key.index, key.subindex, bits)
-                m.cob_id, m.enabled, m.trans_type = mp.cob_id, mp.enabled, mp.trans_type
-                m.save()
+        p.write_with_canopen(node)
         node.nmt.state = "OPERATIONAL"
         seen = {}
 

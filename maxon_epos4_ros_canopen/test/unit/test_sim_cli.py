@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from test_sim_support import CONFIG, NODE1
+from sim_support import CONFIG, NODE1
 from maxon_epos4_ros_canopen.sim.runner import node_configs_from_param, parse_node_spec
 
 SCRIPT = os.path.join(os.path.dirname(CONFIG), "scripts", "virtual_epos4")

@@ -8,7 +8,7 @@ import sys
 import canopen
 import pytest
 
-from test_sim_support import CONFIG, VENDOR_DIR, NodeConfig, Rig, enable
+from sim_support import CONFIG, VENDOR_DIR, NodeConfig, enable
 
 REPO = os.path.dirname(os.path.dirname(CONFIG))
 VENDOR_FILES = sorted(glob.glob(os.path.join(VENDOR_DIR, "*.dcf")))
@@ -33,9 +33,9 @@ def test_project_dcfs(name, method):
 @pytest.mark.skipif(not VENDOR_FILES, reason="maxon's DCFs are test data in ../shared/vendor_dcf, "
                                              "absent outside the project's machines")
 @pytest.mark.parametrize("path", VENDOR_FILES, ids=[os.path.basename(p) for p in VENDOR_FILES])
-def test_vendor_dcf_serves_ppm_move(path):
+def test_vendor_dcf_serves_ppm_move(path, sim_rig):
     node_id = canopen.import_od(path).node_id or 1
-    rig = Rig([NodeConfig(node_id, path)])
+    rig = sim_rig([NodeConfig(node_id, path)])
     try:
         node = rig.remote(node_id, path)
         assert node.sdo[0x1018][1].raw == 0xFB
@@ -50,6 +50,6 @@ def test_vendor_dcf_serves_ppm_move(path):
         rig.close()
 
 
-def test_dcf_missing_gives_clear_error():
+def test_dcf_missing_gives_clear_error(sim_rig):
     with pytest.raises(Exception):
-        Rig([NodeConfig(1, os.path.join(CONFIG, "no_such.dcf"))])
+        sim_rig([NodeConfig(1, os.path.join(CONFIG, "no_such.dcf"))])

@@ -1,24 +1,20 @@
 """EMCY, error objects, fault reset and every fault injection of the virtual EPOS4."""
 import struct
-import time
 
 import pytest
 from canopen.sdo.exceptions import SdoCommunicationError
 
-from test_sim_support import NODE1, NODE2, NodeConfig, Rig, enable
-from maxon_epos4_ros_canopen import epos4_errors  # noqa: E402 (path set by test_sim_support)
+from sim_support import NODE1, NODE2, NodeConfig, enable
+from maxon_epos4_ros_canopen import epos4_errors
 
 # The simulator times an SDO delay from its node's last advance (up to one
-# tick before the request came) on time.monotonic(); the virtual bus stamps
-# frames with time.time(). A few ms cover both.
+# tick before the request came). A few ms cover it.
 CLOCK_SLACK = 0.01
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
 
 
 def test_injected_emcy_faults_drive_and_fills_error_objects(rig):
@@ -102,7 +98,7 @@ def test_sdo_delay_delays_answers(rig):
     node = rig.remote(1)
     rig.sim.inject_fault(1, "sdo_delay", duration=0.4)
     rig.drain()
-    sent = time.time()  # the virtual bus stamps frames with time.time()
+    sent = rig.clock.wall()  # what the rig's clock stamps frames with
     rig.send(0x601, bytes([0x40, 0x41, 0x60, 0, 0, 0, 0, 0]))
     answer = rig.expect(lambda m: m.arbitration_id == 0x581)
     # a loaded host can only make the answer later, never earlier
@@ -164,7 +160,7 @@ def test_a_fault_reaction_ends_at_standstill_however_coarse_the_steps(rig, step)
     when the simulating loop is starved and advances in coarse steps: the
     position then stays where the ramp ended, as a real drive's does."""
     node = rig.remote(1)
-    from test_sim_support import spin_up
+    from sim_support import spin_up
     spin_up(node, rig, 500)
     drive = rig.sim.nodes[1]
 
@@ -194,7 +190,7 @@ def test_a_drive_goes_on_turning_while_its_interface_is_down(rig):
     control loop: a drive turning at 500 rpm turns on, and the simulator
     still serves its own calls (fault injection) meanwhile."""
     import can
-    from test_sim_support import spin_up
+    from sim_support import spin_up
     node = rig.remote(1)
     spin_up(node, rig, 500)
     receive = rig.sim.bus.recv

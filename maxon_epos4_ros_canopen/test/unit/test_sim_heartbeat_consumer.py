@@ -7,32 +7,43 @@ import can
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from test_sim_support import NODE1, NODE2, NodeConfig, RampRecorder, Rig, spin_up
+from maxon_epos4_ros_canopen.clock import REAL
+from sim_support import NODE1, NODE2, NodeConfig, RampRecorder, spin_up
 
 MASTER = 0x7F
 TIMEOUT_MS = 100
 # test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
-# arrived: the consumer time there, and the SYNCs queued behind each of the
-# master's heartbeats (the starved loop takes 2 ms for each: 600 ms, more
-# than the consumer time, between two heartbeats). The heartbeats go out a
-# few ms apart; a host would have to hold the sending thread for nearly the
-# consumer time to make that a real loss (the test checks it did not).
-BEHIND_CONSUMER_MS = 500
-BEHIND_SYNCS = 300
-BEHIND_HEARTBEATS = 4
-# The stall of the simulating host that test_a_stall_of_the_simulating_process_
-# is_no_silence_of_the_master models: three consumer times.
-HOST_STALL = 3 * TIMEOUT_MS / 1000.0
+# arrived: the consumer time there, the SYNCs queued behind each of the
+# master's heartbeats and what each costs the starved loop (2 s between two
+# heartbeats, more than the consumer time). The heartbeats go out a few ms
+# apart; a host would have to hold the sending thread for the consumer time
+# to make that a real loss (the test checks it did not): 1.5 s, which a
+# load average of 20 on two cores held it short of (568 ms was seen).
+BEHIND_CONSUMER_MS = 1500
+BEHIND_SYNCS = 400
+BEHIND_HANDLE_S = 0.005
+BEHIND_HEARTBEATS = 2
+# The stall tests (test_a_stall_...): the consumer time, generous because
+# the master's heartbeat there comes from a thread of this process, which a
+# loaded host may hold too; and the stall of the simulating host they model,
+# three consumer times.
+STALL_CONSUMER_MS = 500
+HOST_STALL = 3 * STALL_CONSUMER_MS / 1000.0
 HEARTBEAT_LOST = struct.pack("<HB5s", 0x8130, 0x11, bytes(5))  # generic + communication
 QUICK_STOP_DECEL = 2000  # rpm/s
 PROFILE_DECEL = 6000
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
+
+
+@pytest.fixture
+def real_rig(sim_rig):
+    """The simulator's own loop thread on the wall clock: for the tests of
+    how that loop meets a host that stalls it (docs/testing.md)."""
+    return sim_rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)], clock=REAL)
 
 
 class Master:
@@ -40,7 +51,7 @@ class Master:
 
     def __init__(self, rig, node_id=MASTER):
         msg = can.Message(arbitration_id=0x700 + node_id, data=b"\x05", is_extended_id=False)
-        self.task = rig.raw.send_periodic(msg, 0.02)
+        self.task = rig.send_periodic(msg, 0.02)
 
     def stop(self):
         self.task.stop()
@@ -258,7 +269,7 @@ def test_a_sync_that_finds_the_master_lost_applies_no_rxpdo_received_before(rig)
     assert node.sdo[0x6041].raw & 0x6F == 0x07  # still quick stop active
 
 
-def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_arrived(rig):
+def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_arrived(real_rig):
     """A real drive never falls behind the bus; the simulating process can,
     on a loaded host, with frames waiting in its socket. Its consumer must
     judge by when each heartbeat reached it, not by when its loop got to
@@ -268,6 +279,7 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     stops is still noticed. (The master's heartbeats go on until the loop
     has caught up and the test has looked: the EMCY of the master that
     stops at the end cannot be taken for one during the backlog.)"""
+    rig = real_rig
     import time
 
     node = rig.remote(1)
@@ -278,8 +290,8 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
     handle = rig.sim.handle
 
-    def slow_handle(msg, now):  # a starved loop: 2 ms for every frame
-        time.sleep(0.002)
+    def slow_handle(msg, now):  # a starved loop: BEHIND_HANDLE_S for every frame
+        time.sleep(BEHIND_HANDLE_S)
         handle(msg, now)
     rig.sim.handle = slow_handle
     heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
@@ -310,24 +322,48 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"
 
 
-def test_a_stall_of_the_simulating_process_is_no_silence_of_the_master(rig):
-    """The whole host can stop for a while (user-mode Linux under load):
-    neither the master's heartbeat nor the simulator runs meanwhile, and
-    when both go on, the simulator may look at its consumers before the
-    heartbeat due during the stall has reached its socket. A real drive
-    never stalls; the simulator gives the bus one more pass after a stall
-    of its own before it judges the master. A master that stays silent is
-    still noticed."""
-    import time
-
+def _operational_under_a_master(rig) -> Master:
+    """Node 1 turning, operational, watching the master's heartbeat
+    (STALL_CONSUMER_MS); no frame recorded yet."""
     node = rig.remote(1)
-    _watch_master(node)  # 100 ms
+    _watch_master(node, timeout_ms=STALL_CONSUMER_MS)
     master = Master(rig)
     spin_up(node, rig)
     rig.send(0x000, bytes([0x01, 1]))
     assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
+    rig.drain()
+    return master
+
+
+def _lost_no_earlier_than_a_consumer_time_after(rig, resumed_at: float) -> None:
+    """The master stays silent after the heartbeat sent at ``resumed_at``
+    (time.time() just before its send): the EMCY of its loss must come, and
+    not before that heartbeat's consumer time ran out. An EMCY before it is
+    the drive taking its own stall for the master's silence. Judged by the
+    frames' send times, which a loaded host can only make later."""
+    emcy = rig.expect(_is_emcy, timeout=10.0)
+    assert emcy, "a master that stopped was not noticed"
+    assert resumed_at, "the heartbeat after the stall was never sent"
+    early = resumed_at + STALL_CONSUMER_MS / 1000.0 - emcy.timestamp
+    assert early <= 0.005, ("EMCY 0x8130 %.0f ms after the heartbeat that followed the stall (consumer time %d ms):"
+                            " the drive took its own stall for a lost master"
+                            % ((emcy.timestamp - resumed_at) * 1000, STALL_CONSUMER_MS))
+
+
+def test_a_stall_of_the_simulating_process_is_no_silence_of_the_master(real_rig):
+    """The whole host can stop for a while (user-mode Linux under load):
+    neither the master's heartbeat nor the simulator runs meanwhile, and
+    when both go on, the simulator may look at its consumers before the
+    heartbeat due during the stall has reached its socket. A real drive
+    never stalls; the simulator leaves the time it stood still out of its
+    supervision. A master that stays silent is still noticed."""
+    rig = real_rig
+    import time
+
+    master = _operational_under_a_master(rig)
     receive = rig.sim._receive
     passes = []
+    resumed = [0.0]
     heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
 
     def host_stalls_once(timeout):
@@ -335,16 +371,53 @@ def test_a_stall_of_the_simulating_process_is_no_silence_of_the_master(rig):
         if len(passes) == 1:
             master.stop()
             # The stall itself, on purpose (not a wait for anything): the
-            # simulator's loop stands still for longer than the 100 ms
-            # consumer time. A loaded host only makes it longer, which is
-            # the case under test.
+            # simulator's loop stands still for three consumer times. A
+            # loaded host only makes it longer, which is the case under test.
             time.sleep(HOST_STALL)
             return None
         if len(passes) == 2:
+            resumed[0] = time.time()
             rig.raw.send(heartbeat)  # the heartbeat due during the stall, sent on resuming
         return receive(timeout)
     rig.sim._receive = host_stalls_once
     assert rig.wait(lambda: len(passes) > 20)
     rig.sim._receive = receive
-    assert rig.sim.read(1, 0x6041) & 0x6F == 0x27, "the drive took its own stall for a lost master"
-    assert rig.expect(_is_emcy, timeout=5.0), "a master that stopped was not noticed"
+    _lost_no_earlier_than_a_consumer_time_after(rig, resumed[0])
+
+
+def test_a_stall_while_the_simulator_handles_a_frame_is_no_silence_of_the_master(real_rig):
+    """As above, with the host stopping while the simulating loop handles a
+    frame instead of while it waits for one (user-mode Linux stops every
+    process of it at any instruction): the loop finds no frame waiting when
+    it goes on, as the master's heartbeat stood still too, and must not take
+    the time the host stood still for the master's silence."""
+    rig = real_rig
+    import time
+
+    master = _operational_under_a_master(rig)
+    handle, receive = rig.sim.handle, rig.sim._receive
+    heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
+    after_stall = []
+    resumed = [0.0]
+
+    def host_stalls_in_a_heartbeat(msg, now):
+        handle(msg, now)
+        if not after_stall and msg.arbitration_id == 0x700 + MASTER:
+            master.stop()
+            after_stall.append("stalled")
+            # The stall itself, on purpose (not a wait for anything), as in
+            # the test above.
+            time.sleep(HOST_STALL)
+
+    def heartbeat_one_pass_later(timeout):
+        if after_stall:
+            after_stall.append("pass")
+            if len(after_stall) == 4:  # two passes after the stall: the heartbeat due meanwhile is in
+                resumed[0] = time.time()
+                rig.raw.send(heartbeat)
+        return receive(timeout)
+    rig.sim.handle = host_stalls_in_a_heartbeat
+    rig.sim._receive = heartbeat_one_pass_later
+    assert rig.wait(lambda: len(after_stall) > 20)
+    rig.sim.handle, rig.sim._receive = handle, receive
+    _lost_no_earlier_than_a_consumer_time_after(rig, resumed[0])

@@ -3,14 +3,12 @@ import struct
 
 import pytest
 
-from test_sim_support import NODE1, NODE1_HM, NodeConfig, Rig, enable
+from sim_support import NODE1, NODE1_HM, NodeConfig, enable
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1)])
 
 
 def sw(node):
@@ -137,8 +135,8 @@ def test_homing_unsupported_method_reports_error(rig):
     assert rig.wait(lambda: sw(node) & 0x2000)
 
 
-def test_homing_minus3_current_threshold_against_hard_stop():
-    r = Rig([NodeConfig(1, NODE1_HM, hard_stop=(-5000.0, 1600.0))])
+def test_homing_minus3_current_threshold_against_hard_stop(sim_rig):
+    r = sim_rig([NodeConfig(1, NODE1_HM, hard_stop=(-5000.0, 1600.0))])
     try:
         node = r.remote(1, NODE1_HM)
         assert node.sdo[0x6098].raw == -3
@@ -236,8 +234,8 @@ def test_max_profile_velocity_limits_ppm(rig):
     assert any(s & 0x0800 for _, s in demands)  # internal limit active while limited
 
 
-def test_homing_minus4_needs_the_current_threshold():
-    r = Rig([NodeConfig(1, NODE1_HM, hard_stop=(-1500.0, 5000.0))])
+def test_homing_minus4_needs_the_current_threshold(sim_rig):
+    r = sim_rig([NodeConfig(1, NODE1_HM, hard_stop=(-1500.0, 5000.0))])
     try:
         node = r.remote(1, NODE1_HM)
         node.sdo[0x6098].raw = -4  # negative direction

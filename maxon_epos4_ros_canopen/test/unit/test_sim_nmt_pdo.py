@@ -3,14 +3,12 @@ import struct
 
 import pytest
 
-from test_sim_support import NODE1, NODE2, NodeConfig, Rig, enable
+from sim_support import NODE1, NODE2, NodeConfig, enable
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1), NodeConfig(2, NODE2)])
 
 
 def test_boot_up_after_reset_node_and_reset_communication(rig):
@@ -172,11 +170,11 @@ def test_event_tpdo_respects_inhibit_time(rig):
     assert 2 <= len(frames) <= 21
 
 
-def test_nodes_of_one_dcf_keep_their_own_node_id_values_through_resets():
+def test_nodes_of_one_dcf_keep_their_own_node_id_values_through_resets(sim_rig):
     """Three nodes read from one file share its dictionary, yet each answers
     with its own $NODEID values (TxPDO COB-IDs, EMCY COB-ID) at power-on and
     after a reset, and a value written to one does not reach the others."""
-    r = Rig([NodeConfig(n, NODE1) for n in (1, 2, 3)])
+    r = sim_rig([NodeConfig(n, NODE1) for n in (1, 2, 3)])
     try:
         nodes = {n: r.remote(n) for n in (1, 2, 3)}
 

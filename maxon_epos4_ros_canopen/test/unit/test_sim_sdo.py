@@ -4,14 +4,12 @@ import struct
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from test_sim_support import NODE1, NodeConfig, Rig
+from sim_support import NODE1, NodeConfig
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1)])
 
 
 def abort_code(rig, node, index, sub, value=None):
@@ -53,10 +51,10 @@ def test_abort_codes(rig, index, sub, value, code):
     assert abort_code(rig, node, index, sub, value) == code
 
 
-def test_write_only_abort_and_general_error_frames():
+def test_write_only_abort_and_general_error_frames(sim_rig):
     # a raw client: upload of a write-only object needs an object that is
     # write-only; the project DCF has none, so patch one in the OD at run time.
-    r = Rig([NodeConfig(1, NODE1)])
+    r = sim_rig([NodeConfig(1, NODE1)])
     try:
         var = r.sim.nodes[1].store.vars[(0x6040, 0)]
         r.sim.call(lambda: setattr(var, "access_type", "wo"))

@@ -4,7 +4,7 @@ measured from the drive's own TxPDO3, and the state it ends in."""
 import pytest
 from canopen.sdo.exceptions import SdoAbortedError
 
-from test_sim_support import NODE1, NodeConfig, RampRecorder, Rig, spin_up
+from sim_support import NODE1, NodeConfig, RampRecorder, spin_up
 
 PROFILE_DECEL = 6000  # rpm/s, 0x6084
 QUICK_STOP_DECEL = 2000  # rpm/s, 0x6085: far enough apart to tell which one ramped
@@ -15,10 +15,8 @@ QUICK_STOP_DONE = 0x0617  # quick stop active with target reached (options 5, 6)
 
 
 @pytest.fixture
-def rig():
-    r = Rig([NodeConfig(1, NODE1)])
-    yield r
-    r.close()
+def rig(sim_rig):
+    return sim_rig([NodeConfig(1, NODE1)])
 
 
 def _moving(rig):

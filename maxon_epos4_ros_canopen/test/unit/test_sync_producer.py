@@ -9,9 +9,9 @@ import time
 import can
 import pytest
 
-from maxon_epos4_ros_canopen.config import HeartbeatConfig
+from maxon_epos4_ros_canopen.config_schema import HeartbeatConfig
 from maxon_epos4_ros_canopen.driver.bus import SYNC_COB_ID, HeartbeatProducer, SyncProducer
-from test_driver import until
+from maxon_epos4_ros_canopen.clock import REAL
 
 MASTER_HEARTBEAT = 0x77F
 
@@ -69,7 +69,7 @@ def test_stop_ends_the_frames_and_restart_counts_from_1(buses):
     sync.stop()
     # stop() does not wait for the thread: it ends at its next wake-up, a
     # frame it was sending then the last. Once it ended, nothing can follow.
-    assert until(lambda: not sender.is_alive())
+    assert REAL.wait_until(lambda: not sender.is_alive(), 5.0)
     while sniffer.recv(0) is not None:
         pass
     sync.start(0.005)
@@ -185,7 +185,7 @@ def test_a_bus_that_refuses_frames_for_a_while_does_not_end_the_sender(buses, mo
         sender, cob_id = HeartbeatProducer(master, HeartbeatConfig(200.0, MASTER_HEARTBEAT, b"\x05")), MASTER_HEARTBEAT
         sender.start()
     try:
-        assert until(lambda: len(refused) >= 3)
+        assert REAL.wait_until(lambda: len(refused) >= 3, 5.0)
         assert sniffer.recv(0) is None
         down.clear()
         frames = collect(sniffer, 3, cob_id=cob_id)

@@ -7,9 +7,9 @@ import pytest
 
 from maxon_epos4_ros_canopen import trajectory as tj
 from maxon_epos4_ros_canopen.cia402 import OperationMode, State
-from maxon_epos4_ros_canopen.trajectory import (
-    JointTolerance, TrajectoryError, TrajectoryExecutor, TrajectoryPoint as P,
-    tolerances_from_constraints)
+from maxon_epos4_ros_canopen.trajectory import TrajectoryError, TrajectoryExecutor, TrajectoryPoint as P
+from maxon_epos4_ros_canopen.trajectory_tolerances import (DEFAULT_STOPPED_VELOCITY_TOLERANCE, JointTolerance,
+                                                           merge_goal_tolerances, tolerances_from_constraints)
 
 J = ("base_link1_joint", "link1_link2_joint")
 DT = 0.01  # SYNC period of the CSP example
@@ -231,7 +231,7 @@ def test_empty_trajectory_stops_and_succeeds():
 
 # --- tolerances -------------------------------------------------------------
 
-def test_path_tolerance_violation_aborts_and_stops_at_actual():
+def test_path_tolerance_violation_aborts_and_stops_from_the_target_sent_last():
     tol = tolerances_from_constraints(J, {J[0]: {"trajectory": 0.1}})
     ex = executor(tolerances=tol)
     ex.submit("g", J, [P((2.0, 0.0), (), (), 2.0)], 0.0, 0.0)
@@ -241,7 +241,13 @@ def test_path_tolerance_violation_aborts_and_stops_at_actual():
     assert "base_link1_joint" in res[0].message
     t_abort = next(t for t, o in samples if o.outcome)
     assert t_abort == pytest.approx(0.11, abs=DT)  # first cycle the error exceeds 0.1 rad
-    assert ex.query_state(1.0).positions == pytest.approx((0.0, 0.0))
+    # Readings judge, they never steer: the stop starts at the target sent
+    # last (0.1 rad at 1 rad/s, one cycle before the abort) and decelerates
+    # over stop_trajectory_duration (0.2 s) to 0.1 + 1.0 * 0.2 / 2, not at
+    # the reading (0.0).
+    sent = next(o.desired for t, o in samples if t == pytest.approx(t_abort - DT))
+    assert sent.positions[0] == pytest.approx(t_abort - DT)
+    assert ex.query_state(1.0).positions == pytest.approx((sent.positions[0] + 0.1, 0.0))
 
 
 def test_goal_tolerance_waits_goal_time_then_fails():
@@ -278,13 +284,13 @@ def test_stopped_velocity_tolerance_delays_success():
 
 def test_goal_tolerances_override_defaults():
     base = tolerances_from_constraints(J, {J[0]: {"trajectory": 0.1, "goal": 0.02}, J[1]: {"goal": 0.02}})
-    merged = tj.merge_goal_tolerances(base, [(J[0], 0.5, 0.0, 0.0)], [(J[0], -1.0, 0.0, 0.0), (J[1], 0.0, 0.3, 0.0)],
-                                      0.0)
+    merged = merge_goal_tolerances(base, [(J[0], 0.5, 0.0, 0.0)], [(J[0], -1.0, 0.0, 0.0), (J[1], 0.0, 0.3, 0.0)],
+                                   0.0)
     assert merged.path[J[0]].position == 0.5
     assert merged.goal[J[0]].position == 0.0  # -1: not checked
     assert merged.goal[J[1]] == JointTolerance(0.02, 0.3, 0.0)
     with pytest.raises(TrajectoryError) as err:
-        tj.merge_goal_tolerances(base, [("ghost", 1.0, 0.0, 0.0)], [], 0.0)
+        merge_goal_tolerances(base, [("ghost", 1.0, 0.0, 0.0)], [], 0.0)
     assert err.value.code == tj.INVALID_GOAL and "ghost" in err.value.message
 
 
@@ -303,8 +309,8 @@ def test_bad_constraints_name_the_key(constraints, text):
 
 def test_constraints_defaults():
     tol = tolerances_from_constraints(J, None)
-    assert tol.goal_time == 0.0 and tol.stopped_velocity_tolerance == tj.DEFAULT_STOPPED_VELOCITY_TOLERANCE
-    assert tol.goal[J[0]].velocity == tj.DEFAULT_STOPPED_VELOCITY_TOLERANCE
+    assert tol.goal_time == 0.0 and tol.stopped_velocity_tolerance == DEFAULT_STOPPED_VELOCITY_TOLERANCE
+    assert tol.goal[J[0]].velocity == DEFAULT_STOPPED_VELOCITY_TOLERANCE
 
 
 # --- readiness --------------------------------------------------------------

@@ -74,9 +74,10 @@ def generated(tmp_path_factory):
         (outdir / "__init__.py").write_text("".join("from ._%s import *\n" % f.stem for f in files))
     (out / "control_msgs" / "__init__.py").write_text("")
     _drop_modules()
-    sys.path.insert(0, str(out))
-    yield out
-    sys.path.remove(str(out))
+    # the generated package is importable for this module's tests only
+    with pytest.MonkeyPatch.context() as patch:
+        patch.syspath_prepend(str(out))
+        yield out
     _drop_modules()
 
 

@@ -5,12 +5,14 @@ real driver would put on the bus at each SYNC.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import Dict, List
 
 import pytest
 
+from csp_rig import HeldPoints
 from maxon_epos4_ros_canopen import trajectory as tj
 from maxon_epos4_ros_canopen.cia402 import State
 from maxon_epos4_ros_canopen.controllers import ControllerManager
@@ -34,7 +36,8 @@ class FakeDriver:
 
     def __init__(self, period=(10, -3)):
         self.joints = {j: SimpleNamespace(position=0.0, velocity=0.0, state=State.OPERATION_ENABLED,
-                                          mode=None, mode_display=0, error=None, halted=False) for j in J}
+                                          mode=None, mode_display=0, error=None, halted=False,
+                                          target_position=0.0) for j in J}
         self.commands: Dict[str, List[float]] = {j: [] for j in J}
         self.modes: List[tuple] = []
         self.tried: List[str] = []
@@ -53,6 +56,7 @@ class FakeDriver:
         if self.joints[joint].state is not State.OPERATION_ENABLED:
             return Result(False, "not operation enabled")
         self.commands[joint].append(value)
+        self.joints[joint].target_position = value
         return Result(True)
 
     def get_object(self, joint, obj, cached):
@@ -241,3 +245,90 @@ def test_query_state_samples_the_trajectory():
     s = ctrl.query_state(clock.t + 1.0)
     assert s.positions == pytest.approx((0.5, 1.0))
     assert isinstance(ctrl, JointTrajectoryController)
+
+
+def test_forged_readings_end_a_goal_but_never_become_targets():
+    driver, ctrl, clock, results = started()
+    ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)
+    run(driver, ctrl, clock, 0.5)
+    sent = driver.commands[J[0]][-1]
+    for _ in range(60):  # a forger reports 5 rad every cycle
+        driver.joints[J[0]].position = 5.0
+        clock.t += DT
+        ctrl.cycle(driver)
+    assert [(r.goal_id, r.code) for r in results] == [("g", tj.PATH_TOLERANCE_VIOLATED)]
+    assert "path tolerance" in results[0].message
+    after = driver.commands[J[0]][driver.commands[J[0]].index(sent) + 1:]
+    # from the target sent last: on along the path, decelerating to rest
+    assert all(sent <= c <= 1.0 for c in after) and after[-1] == after[-10]
+    assert after[-1] - sent < 0.5 * 0.2  # v * stop_trajectory_duration / 2 at 0.5 rad/s
+
+
+def test_refused_command_holds_the_targets_sent_last_not_the_readings():
+    driver, ctrl, clock, results = started()
+    ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)
+    run(driver, ctrl, clock, 0.5)
+    sent = {j: driver.commands[j][-1] for j in J}
+    for j in J:
+        driver.joints[j].position = sent[j] - 0.15  # forged, inside the path tolerance (0.2)
+    refuse = driver.set_command
+    driver.set_command = lambda joint, kind, value: Result(False, "outside limits")
+    clock.t += DT
+    ctrl.cycle(driver)
+    assert len(results) == 1 and "outside limits" in results[0].message
+    driver.set_command = refuse
+    run(driver, ctrl, clock, 0.1)
+    assert driver.commands[J[0]][-10:] == pytest.approx([sent[J[0]]] * 10)
+    assert driver.commands[J[1]][-10:] == pytest.approx([sent[J[1]]] * 10)
+
+
+def test_after_recover_the_controller_holds_the_drivers_own_target():
+    driver, ctrl, clock, results = started()
+    ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)
+    run(driver, ctrl, clock, 1.0)
+    driver.joints[J[1]].state = State.FAULT
+    run(driver, ctrl, clock, 0.4)
+    # recover: the driver enables each drive at its 0x6064 read over SDO and
+    # holds it (target_position); the TxPDO reading says something else
+    for j, held in zip(J, (0.61, 0.47)):
+        driver.joints[j].target_position = held
+        driver.joints[j].position = 4.0
+    driver.joints[J[1]].state = State.OPERATION_ENABLED
+    n = {j: len(driver.commands[j]) for j in J}
+    for _ in range(30):
+        clock.t += DT
+        ctrl.cycle(driver)
+    assert driver.commands[J[0]][n[J[0]]:] == pytest.approx([0.61] * 30)
+    assert driver.commands[J[1]][n[J[1]]:] == pytest.approx([0.47] * 30)
+
+
+def test_the_cycle_runs_while_a_long_goal_is_built_and_preemption_takes_no_step():
+    driver, ctrl, clock, results = started()
+    ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)  # 0.5 rad/s: 0.005 rad per cycle
+    run(driver, ctrl, clock, 0.5)
+    start = ctrl.query_state(clock.t).positions
+    # the same line on, at 10,000 points: a goal that takes long to build
+    points = HeldPoints([P((start[0] + 0.5 * t, start[1] + 0.5 * t), (), (), t)
+                         for t in (0.001 * (i + 1) for i in range(10000))])
+    submitted = []
+    builder = threading.Thread(target=lambda: submitted.append(ctrl.submit("long", J, points, 0.0)))
+    builder.start()
+    assert points.walking.wait(5.0)
+    cycled = threading.Event()
+
+    def cycles():  # 20 cycles while the goal is being built
+        run(driver, ctrl, clock, 0.2)
+        cycled.set()
+    worker = threading.Thread(target=cycles, daemon=True)
+    worker.start()
+    ran = cycled.wait(5.0)
+    points.release.set()
+    builder.join(10.0)
+    worker.join(10.0)
+    assert ran, "the cycle waited for a goal being built"
+    assert [o.goal_id for o in submitted] == ["g"]  # preempted
+    run(driver, ctrl, clock, 0.3)
+    targets = driver.commands[J[0]]
+    steps = [b - a for a, b in zip(targets, targets[1:])]
+    assert max(abs(s) for s in steps[5:]) <= 0.005 + 1e-9, max(steps[5:])
+    assert targets[-1] == pytest.approx(start[0] + 0.5 * 0.5, abs=0.011)

@@ -5,22 +5,18 @@ what the drives receive (RPDO frames after each SYNC) and hold (0x607A)."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 from typing import List, Tuple
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # csp_rig beside this file (any import mode)
-from csp_rig import JOINTS as J, CspRig, Listener, wait as rig_wait  # noqa: E402
-
-from maxon_epos4_ros_canopen import trajectory as tj  # noqa: E402
-from maxon_epos4_ros_canopen.driver import Driver  # noqa: E402
-from maxon_epos4_ros_canopen.sim import Simulator  # noqa: E402
-from maxon_epos4_ros_canopen.trajectory import TrajectoryPoint as P  # noqa: E402
+from csp_rig import JOINTS as J, CspRig, Listener, target_mapping, targets_per_sync, wait as rig_wait
+from maxon_epos4_ros_canopen import trajectory as tj
+from maxon_epos4_ros_canopen.clock import SteppedClock
+from maxon_epos4_ros_canopen.driver import Driver
+from maxon_epos4_ros_canopen.sim import Simulator
+from maxon_epos4_ros_canopen.trajectory import TrajectoryPoint as P
 
 INC_PER_RAD = 83200 / (2 * math.pi)
-SYNC = 0x80
 # How long a wait for a condition may take before the test fails: generous,
 # it only bounds how long a failure takes on a loaded host.
 TIMEOUT = 15.0
@@ -38,9 +34,14 @@ def inc(rad: float) -> int:
     return int(round(rad * INC_PER_RAD))
 
 
+# The clock of the test under way (the rig fixture's): the waits below run on it.
+_clock = [SteppedClock()]
+
+
 @pytest.fixture
 def rig():
-    rig = CspRig()
+    _clock[0] = SteppedClock()
+    rig = CspRig(clock=_clock[0])
     try:
         ctrl = rig.start()
         yield rig.sim, rig.driver, ctrl, rig.listener, rig.outcomes
@@ -49,7 +50,7 @@ def rig():
 
 
 def wait(condition, timeout=TIMEOUT) -> bool:
-    return rig_wait(condition, timeout)
+    return rig_wait(condition, timeout, _clock[0])
 
 
 def caught_up(sim: Simulator) -> bool:
@@ -67,34 +68,6 @@ def flushed(driver: Driver, recorder: Listener) -> None:
     cycle = driver.cycles
     assert wait(lambda: driver.cycles > cycle)
     assert recorder.flush(TIMEOUT)
-
-
-def target_mapping(sim: Simulator, node_id: int):
-    """(COB-ID, byte offset) of 0x607A in the drive's active RPDOs."""
-    for n in range(4):
-        cob = sim.read(node_id, 0x1400 + n, 1)
-        if cob & 0x80000000:
-            continue
-        offset = 0
-        for sub in range(1, sim.read(node_id, 0x1600 + n, 0) + 1):
-            entry = sim.read(node_id, 0x1600 + n, sub)
-            if entry >> 16 == 0x607A:
-                return cob & 0x7FF, offset
-            offset += (entry & 0xFF) // 8
-    raise AssertionError("no RPDO carries 0x607A")
-
-
-def targets_per_sync(frames, cob, offset):
-    """0x607A values sent in each SYNC period, one list per period."""
-    periods, current = [], None
-    for f in frames:
-        if f.arbitration_id == SYNC:
-            if current is not None:
-                periods.append(current)
-            current = []
-        elif f.arbitration_id == cob and current is not None:
-            current.append(int.from_bytes(f.data[offset:offset + 4], "little", signed=True))
-    return periods
 
 
 def last_targets(recorder: Listener, mapping: Tuple[int, int]) -> List[int]:

@@ -136,6 +136,24 @@ def test_a_never_finite_expression_names_its_key_and_file():
     ("pos - 0.5", lambda v: v - 0.5),
     ("(pos - 1) * 3", lambda v: (v - 1.0) * 3.0),
     ("abs(pos) / 4", lambda v: abs(v) / 4.0),
+    # chains of up to three scalings are one closure; a fourth extends it
+    ("pos*3", lambda v: v * 3.0),
+    ("pos/3", lambda v: v / 3.0),
+    ("pos*3*7", lambda v: v * 3.0 * 7.0),
+    ("pos*3/7", lambda v: v * 3.0 / 7.0),
+    ("pos/3*7", lambda v: v / 3.0 * 7.0),
+    ("pos/3/7", lambda v: v / 3.0 / 7.0),
+    ("pos*3*7*11", lambda v: v * 3.0 * 7.0 * 11.0),
+    ("pos*3*7/11", lambda v: v * 3.0 * 7.0 / 11.0),
+    ("pos*3/7*11", lambda v: v * 3.0 / 7.0 * 11.0),
+    ("pos*3/7/11", lambda v: v * 3.0 / 7.0 / 11.0),
+    ("pos/3*7*11", lambda v: v / 3.0 * 7.0 * 11.0),
+    ("pos/3*7/11", lambda v: v / 3.0 * 7.0 / 11.0),
+    ("pos/3/7*11", lambda v: v / 3.0 / 7.0 * 11.0),
+    ("pos/3/7/11", lambda v: v / 3.0 / 7.0 / 11.0),
+    ("pos/0.1/7*1e-3/13", lambda v: v / 0.1 / 7.0 * 1e-3 / 13.0),
+    ("pos*3/7+1", lambda v: v * 3.0 / 7.0 + 1.0),
+    ("(pos+1)*3/7", lambda v: (v + 1.0) * 3.0 / 7.0),
 ])
 @pytest.mark.parametrize("value", [0, 1, -7, 123456789, 0.1, -2.5, 1e300, math.inf, -math.inf, math.nan])
 def test_inline_operators_give_the_same_values(text, reference, value):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import threading
 from typing import Callable, List, Optional, Sequence
@@ -136,6 +137,10 @@ def controller_manager_main(argv: Optional[List[str]] = None) -> int:
         print(USAGE)
         return 0
     command, names = args[1], args[2:]
+    # This client is no node, but rospy's wait_for_service logs a failed
+    # contact (a killed driver's service still listed) with a throttle that
+    # reads ROS time: wall time for a process without a node.
+    rospy.rostime.set_rostime_initialized(True)
     try:
         if command in ("lt", "list-types"):
             ok = list_controller_types()
@@ -201,6 +206,10 @@ def _controller_names(items: Sequence[str]) -> List[str]:
     return names
 
 
+def _interrupted(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def spawner_main(argv: Optional[List[str]] = None) -> int:
     """Loads (and starts) controllers; stops and unloads them when it is
     stopped itself, as ROS Noetic's spawner does."""
@@ -208,26 +217,24 @@ def spawner_main(argv: Optional[List[str]] = None) -> int:
     namespace = args.namespace or ""
     if namespace and not namespace.endswith("/"):
         namespace += "/"
-    rospy.init_node("spawner", anonymous=True)
-    try:
-        rospy.loginfo("Controller Spawner: Waiting for service %scontroller_manager/load_controller", namespace)
-        load = _service("load_controller", LoadController, namespace, args.timeout)
-        switch = _service("switch_controller", SwitchController, namespace, args.timeout)
-        _service("unload_controller", UnloadController, namespace, args.timeout)
-    except rospy.ROSException:
-        rospy.logwarn("Controller Spawner couldn't find the expected controller_manager ROS interface.")
-        return 0
-
-    if args.wait_for:
-        heard = threading.Event()
-        rospy.Subscriber(args.wait_for, Bool, lambda msg: heard.set() if msg.data else None)
-        while not heard.wait(0.1):
-            if rospy.is_shutdown():
-                return 0
-
+    # Ctrl-C and SIGTERM end the spawner through an exception in its main
+    # thread, and it takes its controllers down afterwards, outside the
+    # signal handler. rospy's own handler runs the shutdown hooks inside the
+    # handler: when the signal came while the main thread held a lock of
+    # rospy's (publishing a log line to /rosout), the hook's first log line
+    # waited for that lock forever and the spawner never ended.
+    rospy.init_node("spawner", anonymous=True, disable_signals=True)
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _interrupted)
     loaded: List[str] = []
+    taken_down = threading.Event()
 
     def take_down() -> None:
+        """Once, after Ctrl-C or SIGTERM, or from rospy's shutdown hooks
+        when the node is shut down from outside (rosnode kill)."""
+        if taken_down.is_set() or not loaded:
+            return
+        taken_down.set()
         rospy.loginfo("Shutting down spawner. Stopping and unloading controllers...")
         try:
             unload = _service("unload_controller", UnloadController, namespace, args.shutdown_timeout)
@@ -240,28 +247,45 @@ def spawner_main(argv: Optional[List[str]] = None) -> int:
             rospy.logwarn("Controller Spawner couldn't reach controller_manager to take down controllers. "
                           "Waited for %g second(s).", args.shutdown_timeout)
 
-    rospy.on_shutdown(take_down)
     try:
-        names = _controller_names(args.controllers)
-    except (OSError, ValueError, yaml.YAMLError) as exc:
-        rospy.logerr("Controller Spawner: %s", exc)
-        return 1
-    for name in names:
-        rospy.loginfo("Loading controller: %s", name)
-        if load(name).ok:
-            loaded.append(name)
-        else:
-            rospy.logerr("Failed to load %s", name)
-    rospy.loginfo("Controller Spawner: Loaded controllers: %s", ", ".join(loaded))
-    if rospy.is_shutdown():
-        return 0
-    if not args.stopped:
-        if switch(start_controllers=loaded, stop_controllers=[], strictness=SwitchControllerRequest.STRICT,
-                  start_asap=False, timeout=0.0).ok:
-            rospy.loginfo("Started controllers: %s", ", ".join(loaded))
-        else:
-            rospy.logerr("Failed to start controllers: %s", ", ".join(loaded))
-    rospy.spin()
+        try:
+            rospy.loginfo("Controller Spawner: Waiting for service %scontroller_manager/load_controller", namespace)
+            load = _service("load_controller", LoadController, namespace, args.timeout)
+            switch = _service("switch_controller", SwitchController, namespace, args.timeout)
+            _service("unload_controller", UnloadController, namespace, args.timeout)
+        except rospy.ROSException:
+            rospy.logwarn("Controller Spawner couldn't find the expected controller_manager ROS interface.")
+            return 0
+        if args.wait_for:
+            heard = threading.Event()
+            rospy.Subscriber(args.wait_for, Bool, lambda msg: heard.set() if msg.data else None)
+            while not heard.wait(0.1):
+                if rospy.is_shutdown():
+                    return 0
+        rospy.on_shutdown(take_down)
+        try:
+            names = _controller_names(args.controllers)
+        except (OSError, ValueError, yaml.YAMLError) as exc:
+            rospy.logerr("Controller Spawner: %s", exc)
+            return 1
+        for name in names:
+            rospy.loginfo("Loading controller: %s", name)
+            if load(name).ok:
+                loaded.append(name)
+            else:
+                rospy.logerr("Failed to load %s", name)
+        rospy.loginfo("Controller Spawner: Loaded controllers: %s", ", ".join(loaded))
+        if not args.stopped and not rospy.is_shutdown():
+            if switch(start_controllers=loaded, stop_controllers=[], strictness=SwitchControllerRequest.STRICT,
+                      start_asap=False, timeout=0.0).ok:
+                rospy.loginfo("Started controllers: %s", ", ".join(loaded))
+            else:
+                rospy.logerr("Failed to start controllers: %s", ", ".join(loaded))
+        while not rospy.is_shutdown():
+            rospy.rostime.wallsleep(0.5)
+    except KeyboardInterrupt:
+        take_down()
+        rospy.signal_shutdown("spawner stopped")
     return 0
 
 
@@ -306,9 +330,12 @@ def unspawner_main(argv: Optional[List[str]] = None) -> int:
             to_stop = [c.name for c in listing().controller if c.name in names and c.state == "running"]
             if to_stop:
                 rospy.loginfo("Inhibiting controllers: %s", ", ".join(to_stop))
+                # recorded first: stopped while the switch is under way, the
+                # unspawner still starts them again (starting a running one
+                # is no change)
+                inhibited.extend(n for n in to_stop if n not in inhibited)
                 switch(start_controllers=[], stop_controllers=to_stop,
                        strictness=SwitchControllerRequest.BEST_EFFORT, start_asap=False, timeout=0.0)
-                inhibited.extend(n for n in to_stop if n not in inhibited)
         except (rospy.ServiceException, rospy.ROSException) as exc:
             if rospy.is_shutdown():
                 break

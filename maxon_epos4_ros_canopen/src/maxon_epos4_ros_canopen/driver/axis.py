@@ -18,27 +18,27 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from types import MappingProxyType
-from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Optional, Tuple
+from typing import Any, Callable, Dict, Mapping, Optional, Tuple
 
 from .. import cia402
 from ..cia402 import State
-from ..config import SWITCHING_STATES, NodeConfig
-from ..limits import JointLimits, saturate
-from ..epos4_errors import describe as describe_error
-from ..objects import ObjectKey, find_variable
+from ..config_schema import SWITCHING_STATES, NodeConfig
+from ..limits import JointLimits
+from ..objects import ObjectKey
 from ..result import OK, Result, fail, ok
-from ..units import EVALUATION_ERRORS, Expression, object_variable_name
-from .modes import (COMMAND_KINDS, CONTROLWORD, HOMING, MODES, MODES_DISPLAY, MODES_OF_OPERATION,
-                    POSITION_ACTUAL, PROFILE_POSITION, STATUSWORD, TARGET_OF_KIND, TARGET_POSITION, TARGET_TORQUE,
-                    TARGET_VELOCITY, mode_of)
+from ..units import object_variable_name
+from .check import Checked, check_command, state_problem
+from .convert import Converter, FromDevice
+from .inputs import Inputs
+from .modes import (CONTROLWORD, MODES, MODES_DISPLAY, MODES_OF_OPERATION, Mode, POSITION_ACTUAL,
+                    QUICK_STOP_OPTION_CODE, STATUSWORD)
+from .outputs import Outputs
 from .pdo import RxPdo, TpdoReceiver, TxPdo
 from .plan import NodePlan
+from .snapshot import AxisSnapshot, Counters
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 
-REFRESH_CYCLES = 50  # RxPDOs that did not change are sent again this often
-NMT_NAMES = {0: "INITIALISING", 4: "STOPPED", 5: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
 SWITCHING_STATE = {n: State(v) for n, v in SWITCHING_STATES.items()}
 
 # Controlword that keeps the drive in each state once it is there.
@@ -61,138 +61,16 @@ def holding_controlword(statusword: int) -> int:
 
 
 _REBOOTED = "node rebooted"
-EMCY_LOG_LINES = 5  # EMCY log lines per second and axis at most
 # Transitions the drive makes by itself that are no error: the end of a
 # quick stop ramp (option codes 1-4 end in Switch On Disabled).
 _AUTOMATIC = {(State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)}
+_QUICK_STOPPED = (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
 
 # Bound once for the cycle's hot paths (a module global is one lookup, an
-# enum member through its class several; MODES.get(None) is None, as mode_of).
+# enum member through its class several).
 _ENABLED = State.OPERATION_ENABLED
-_mode_get = MODES.get
-_isfinite = math.isfinite
 _tuple_new = tuple.__new__
 _CW_NO_FAULT_RESET = ~cia402.CW_FAULT_RESET_BIT
-
-
-class AxisSnapshot(NamedTuple):
-    """One axis as it stood at the end of a cycle's reading phase. Immutable."""
-    name: str
-    node_id: int
-    key: str
-    position: float
-    velocity: float
-    effort: float
-    raw_position: int
-    statusword: int
-    state: Optional[State]
-    mode_display: int
-    active_mode: Optional[int]
-    nmt_state: str
-    error: Optional[str]
-    halted: bool
-    homing: bool
-    ready: bool
-    attached: bool
-    target_state: Optional[State]
-    held_state: Optional[State]
-    last_emcy: str
-    error_register: int
-    heartbeat_ms: int
-    rebooted: bool
-    command_kind: Optional[str]
-    command_value: float
-    last_refusal: str
-    tpdo_keys: Tuple[Tuple[ObjectKey, ...], ...]          # per TPDO: its objects
-    tpdo_values: Tuple[Optional[Tuple[Any, ...]], ...]    # per TPDO: the latest values (None: none yet)
-    counters: Mapping[str, int]
-    limits: JointLimits
-    plan: NodePlan
-    status_cycle: int              # the cycle that last took in a statusword TPDO
-
-    @property
-    def mode(self) -> int:
-        """The drive's mode of operation display (0x6061)."""
-        return self.mode_display
-
-    @property
-    def readings(self) -> Dict[ObjectKey, Any]:
-        """object -> latest value of every TPDO-mapped object received."""
-        return {k: v for keys, values in zip(self.tpdo_keys, self.tpdo_values) if values is not None
-                for k, v in zip(keys, values)}
-
-    def mode_name(self) -> str:
-        return cia402.mode_name(self.mode_display)
-
-
-class Converter:
-    """Commands in ROS units to device values: immutable, one per axis.
-
-    The expressions were compiled once when the configuration was loaded;
-    the target objects' integer ranges come from the object dictionary.
-    """
-
-    _VARIABLE = {"position": "pos", "velocity": "vel", "effort": "eff"}
-
-    def __init__(self, cfg: NodeConfig, od: Any) -> None:
-        self.expressions: Dict[str, Expression] = {
-            "position": cfg.pos_to_device, "velocity": cfg.vel_to_device, "effort": cfg.eff_to_device}
-        self.ranges: Dict[str, Tuple[int, int, int]] = {}
-        for kind, key in TARGET_OF_KIND.items():
-            bits = len(find_variable(od, key))
-            self.ranges[kind] = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1, key.index)
-        self.dynamic = {k: bool(e.objects) for k, e in self.expressions.items()}
-
-    def convert(self, kind: str, value: float, env: Dict[str, float]) -> Tuple[Optional[int], Optional[str]]:
-        """Device value of a command, or why there is none. ``env`` holds the
-        objects the expression reads; its ``pos``/``vel``/``eff`` entry is
-        overwritten with ``value``."""
-        expr = self.expressions[kind]
-        env[self._VARIABLE[kind]] = value
-        try:  # Expression.evaluate, inline: every command goes through here
-            raw = float(expr.raw(env))
-        except EVALUATION_ERRORS:
-            raw = math.nan
-        if not math.isfinite(raw):
-            return None, "%s %g converts to %r by %r: refused" % (kind, value, raw, expr.text)
-        raw_int = int(round(raw))
-        lo, hi, index = self.ranges[kind]
-        if not lo <= raw_int <= hi:
-            return None, "%s %g converts to %d, outside 0x%04X's range %d..%d" % (kind, value, raw_int, index, lo, hi)
-        return raw_int, None
-
-
-def command_problem(axis: Any, kind: str, value: Any) -> Optional[str]:
-    """Why a command cannot be taken now (None: it can). ``axis`` is an Axis
-    or an AxisSnapshot: the same checks run in the caller's thread on the
-    latest snapshot and again in the cycle when the command is applied."""
-    if kind not in COMMAND_KINDS:
-        return "unknown command kind %r (position, velocity, effort)" % (kind,)
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return "command must be a number"
-    try:
-        value = float(value)
-    except OverflowError:
-        return "%s command refused: not a finite number" % kind
-    if not math.isfinite(value):
-        return "%s command %r refused: not a finite number" % (kind, value)
-    if axis.error:
-        return "%s is in error (%s): call recover" % (axis.name, axis.error)
-    if not axis.ready:
-        return "%s is not initialized: call init" % axis.name
-    if axis.halted:
-        return "%s is halted: call recover before sending commands" % axis.name
-    if axis.state != State.OPERATION_ENABLED:
-        return "%s is not operation enabled (state %s)" % (axis.name, axis.state.value if axis.state else "unknown")
-    if axis.homing:
-        return "%s is homing" % axis.name
-    mode = mode_of(axis.active_mode)
-    if mode is None or mode.command_kind is None:
-        return "%s has no mode for commands yet (start a controller)" % axis.name
-    if mode.command_kind != kind:
-        return "%s is in mode %s, which takes %s commands, not %s" % (
-            axis.name, mode.name, mode.command_kind, kind)
-    return None
 
 
 @dataclass(frozen=True)
@@ -209,7 +87,20 @@ class Binding:
 
 
 class Axis:
-    """One drive's state; owned by the cycle thread."""
+    """One drive's state; owned by the cycle thread. Its CiA 402 state work
+    and commands are here; what the drive sends is taken in by its
+    ``inputs`` (inputs.Inputs), what the driver sends goes out through its
+    ``outputs`` (outputs.Outputs). Both belong to the axis alone."""
+
+    # Slots: the cycle reads these for every axis every SYNC, and with this
+    # many fields a slot is read faster than an instance dict's entry.
+    __slots__ = ("cfg", "name", "node_id", "key", "od", "plan", "limits", "converter", "switching_state",
+                 "quick_stop_option", "from_device", "counters", "inputs", "outputs", "_take_tpdos", "_silence",
+                 "_send", "_readings", "position", "velocity", "effort", "raw_position", "statusword", "state",
+                 "_seen_state", "mode_display", "env", "error", "target_state", "_confirm_after", "_requested_at",
+                 "quick_stop_hold", "held_state", "fault_reset", "active_mode", "halted", "homing", "ready",
+                 "attached", "command_kind", "command_value", "command_raw", "target_position", "last_refusal",
+                 "_modes", "_settle", "_last_cw", "_sw_at", "_mode_at", "_pos_at", "_env_at", "_display_mapped")
 
     def __init__(self, cfg: NodeConfig, od: Any, plan: NodePlan, limits: JointLimits) -> None:
         self.cfg = cfg
@@ -221,10 +112,16 @@ class Axis:
         self.limits = limits
         self.converter = Converter(cfg, od)
         self.switching_state = SWITCHING_STATE[cfg.switching_state]
-        self._from_device = (cfg.pos_from_device, cfg.vel_from_device, cfg.eff_from_device)
-        # a constant conversion (eff_from_device: "0") has one value: not evaluated per cycle
-        self._from_const = tuple(e.evaluate({}) if e.constant else None for e in self._from_device)
-        self._from_raw = tuple(e.raw for e in self._from_device)
+        # 0x605A decides the way out of Quick Stop Active (cia402.next_controlword):
+        # what init writes, until recover reads the drive's own value
+        self.quick_stop_option: Optional[int] = plan.configured_value(od, QUICK_STOP_OPTION_CODE)
+        self.from_device = FromDevice(cfg)
+        self.counters = Counters()
+        self.inputs = Inputs(self.name, self.node_id, self.counters)
+        self.outputs = Outputs()
+        # their methods the cycle calls for every axis, bound once
+        self._take_tpdos, self._silence, self._send = self.inputs.take, self.inputs.silence, self.outputs.send
+        self._readings = self.from_device.values
         # readings (ROS units) and what the drive reports
         self.position = math.nan
         self.velocity = math.nan
@@ -232,23 +129,16 @@ class Axis:
         self.raw_position = 0
         self.statusword = 0
         self.state: Optional[State] = None
+        # the last state a statusword showed (state is None again after
+        # recover clears an error; this one only after a configuration)
+        self._seen_state: Optional[State] = None
         self.mode_display = 0
         self.env: Dict[str, float] = {"pos": math.nan, "vel": math.nan, "eff": math.nan}
-        # node status
-        self.nmt_state = "UNKNOWN"
-        self.last_emcy = ""
-        self.error_register = 0
         self.error: Optional[str] = None
-        self.heartbeat_ms = 0
-        self.last_heartbeat = 0.0
-        self.status_seen = 0.0          # monotonic time of the last statusword TPDO
-        self.status_seen_cycle = 0
-        self.rebooted = False
         # what the driver works towards
         self.target_state: Optional[State] = None
-        self._confirm_after = 0  # status_seen_cycle when target_state was requested
+        self._confirm_after = 0  # inputs.status_seen_cycle when target_state was requested
         self._requested_at = 0.0  # monotonic time target_state was requested
-        self.status_arrived = 0.0  # monotonic time the last statusword TPDO taken arrived
         # The drive left the held state on its own for a state that is no
         # fault, or the driver lost sight of it (no heartbeat, no TPDO, not
         # OPERATIONAL, bus error): its state is not the held one or
@@ -265,72 +155,32 @@ class Axis:
         self.command_kind: Optional[str] = None
         self.command_value = math.nan
         self.command_raw = 0
+        self.target_position = math.nan
         self.last_refusal = ""
-        self._ppm_pending: Optional[int] = None
-        self._ppm_stage = 0
+        # this axis's own mode instances (the profile position handshake and
+        # the homing bit are per drive); the one running is active_mode's
+        self._modes: Dict[Optional[int], Mode] = {n: m.fresh() for n, m in MODES.items()}
+        # Targets were set for holding this cycle: the controlword takes no
+        # transition and keeps the halt bit until they went out (a drive may
+        # apply the controlword's RPDO before the targets' at one SYNC).
+        self._settle = False
         self._last_cw = 0
-        self._tick = 0
-        self.counters: Dict[str, int] = {"bad_tpdo": 0, "undefined_statusword": 0, "undefined_nmt_state": 0,
-                                         "bad_heartbeat": 0, "bad_emcy": 0, "refused_commands": 0,
-                                         "clipped_commands": 0, "emcy_not_logged": 0}
-        self._counters_view: Optional[Mapping[str, int]] = None
-        self._rx: Tuple[RxPdo, ...] = ()
-        self._tx: Tuple[TxPdo, ...] = ()
-        self._tx_last: List[Any] = []
-        self._tx_vals: List[Optional[Tuple[Any, ...]]] = []
-        self._tx_keys: Tuple[Tuple[ObjectKey, ...], ...] = ()
-        self._rx_last: List[bytes] = []
-        self._rx_dirty: List[bool] = []     # values changed since the PDO was last packed
-        self._rx_codec: Tuple[Tuple[int, Callable[..., bytes]], ...] = ()
-        self._tx_codec: Tuple[Tuple[int, int, Callable[[bytes], Tuple[Any, ...]]], ...] = ()
-        self._status_pdo = -1
-        # Where each object sits, worked out at attach so the cycle indexes
-        # lists instead of hashing keys: RxPDO values per PDO, and
-        # (PDO, field) of each object in the RxPDOs and TxPDOs.
-        self._out_vals: List[List[int]] = []
-        self._out_at: Dict[ObjectKey, Tuple[Tuple[int, int], ...]] = {}
-        self._in_at: Dict[ObjectKey, Tuple[int, int]] = {}
+        # Where read finds what it interprets, worked out at attach: (TxPDO,
+        # field) of the statusword, the modes display, the position, and of
+        # each object a conversion reads.
         self._sw_at: Tuple[int, int] = (0, 0)
         self._mode_at: Optional[Tuple[int, int]] = None
         self._pos_at: Optional[Tuple[int, int]] = None
         self._env_at: Tuple[Tuple[str, int, int], ...] = ()
-        self._cyclic_rx: Dict[ObjectKey, int] = {}
-        self._cw_rx = -1
-        self._cw_out: Tuple[Tuple[int, int], ...] = ()
-        self._target_out: Dict[str, Tuple[Tuple[int, int], ...]] = {}  # command kind -> where its target sits
-        self._cyclic_rx_of: Dict[str, int] = {}                          # command kind -> its target's RxPDO
-        self._fresh_after = 0.0
-        self._emcy_logged = -1e9
-        self._emcy_window = -1e9   # start of the current second of EMCY log lines
-        self._emcy_lines = 0
         self._display_mapped = True
 
     # ---------------------------------------------------------- binding
     def attach(self, binding: Binding, cycle: int, now: float) -> None:
         """Take a configured node's codecs and initial values; the drive's
         readings are unknown again until its TPDOs arrive."""
-        self._rx, self._tx = binding.rx, binding.tx
-        self._tx_last = [None] * len(self._tx)
-        self._rejected_seen = [None] * len(self._tx)  # receiver.rejected at the last read
-        self._tx_vals = [None] * len(self._tx)
-        self._tx_keys = tuple(t.keys for t in self._tx)
-        self._fresh_after = binding.configured_at
-        self._rx_last = [b""] * len(self._rx)
-        self._rx_dirty = [True] * len(self._rx)
-        self._rx_codec = tuple((r.cob_id, r.pack_args) for r in self._rx)
-        self._tx_codec = tuple((t.cob_id, t.length, t.unpack) for t in self._tx)
-        self._out_vals = [[int(binding.initial_out.get(k, 0)) for k in r.keys] for r in self._rx]
-        out_at: Dict[ObjectKey, List[Tuple[int, int]]] = {}
-        for i, r in enumerate(self._rx):
-            for j, key in enumerate(r.keys):
-                out_at.setdefault(key, []).append((i, j))
-        self._out_at = {k: tuple(v) for k, v in out_at.items()}
-        self._cw_out = self._out_at[CONTROLWORD]
-        self._target_out = {kind: self._out_at.get(key, ()) for kind, key in TARGET_OF_KIND.items()}
-        self._in_at = {}
-        for i, t in enumerate(self._tx):
-            for j, key in enumerate(t.keys):
-                self._in_at.setdefault(key, (i, j))
+        self.outputs.bind(binding.rx, binding.initial_out)
+        inputs = self.inputs
+        inputs.bind(binding.tx, STATUSWORD, binding.configured_at, binding.heartbeat_ms, now, cycle)
         # The controlword that holds the state the drive was in when it was
         # configured (holding_controlword): a node recover configured
         # without a reset may be enabled, and must stay so, and no more,
@@ -344,49 +194,38 @@ class Axis:
             first_cw = cia402.CW_QUICK_STOP
         else:
             first_cw = int(binding.initial_out.get(CONTROLWORD, 0)) & ~cia402.CW_FAULT_RESET_BIT
-        self._set_out(CONTROLWORD, first_cw)
+        self.outputs.set(CONTROLWORD, first_cw)
         if self.active_mode is not None:
-            self._set_out(MODES_OF_OPERATION, self.active_mode)
-        self._sw_at = self._in_at[STATUSWORD]
-        self._status_pdo = self._sw_at[0]
-        self._mode_at = self._in_at.get(MODES_DISPLAY)
-        self._pos_at = self._in_at.get(POSITION_ACTUAL)
+            self.outputs.set(MODES_OF_OPERATION, self.active_mode)
+        in_at = inputs.at
+        self._sw_at = in_at[STATUSWORD]
+        self._mode_at = in_at.get(MODES_DISPLAY)
+        self._pos_at = in_at.get(POSITION_ACTUAL)
         # A compact layout leaves modes of operation to SDO: the service that
         # switches modes confirms 0x6061 by SDO and tells the axis.
         self._display_mapped = self._mode_at is not None
         if not self._display_mapped:
             self.mode_display = 0  # unknown after a (re)configuration until confirmed
-        self._cw_rx = self._out_at[CONTROLWORD][0][0]
-        self._cyclic_rx = {}
-        for key in (TARGET_POSITION, TARGET_VELOCITY, TARGET_TORQUE):
-            if key in self._out_at:
-                self._cyclic_rx[key] = self._out_at[key][0][0]
-        self._cyclic_rx_of = {kind: self._cyclic_rx.get(key, -1) for kind, key in TARGET_OF_KIND.items()}
         names = []
-        for expr in self._from_device + tuple(self.converter.expressions.values()):
+        for expr in self.from_device.expressions + tuple(self.converter.expressions.values()):
             for key in expr.objects:
                 names.append((object_variable_name(key), key))
-        self._env_keys = tuple(dict(names).items())
-        self._env_at = tuple((name, self._in_at[key][0], self._in_at[key][1])
-                             for name, key in self._env_keys if key in self._in_at)
-        for name, _ in self._env_keys:  # unknown (NaN) until a TPDO carries it
+        env_keys = tuple(dict(names).items())
+        self._env_at = tuple((name, in_at[key][0], in_at[key][1]) for name, key in env_keys if key in in_at)
+        for name, _ in env_keys:  # unknown (NaN) until a TPDO carries it
             self.env.setdefault(name, math.nan)
         self.env.update(binding.initial_env)
         self.raw_position = binding.raw_position
-        self.state = None
+        self.state = self._seen_state = None
         self.statusword = 0
-        self.heartbeat_ms = binding.heartbeat_ms
-        self.last_heartbeat = self.status_seen = now
-        self.status_seen_cycle = cycle
-        self.nmt_state = "OPERATIONAL"
-        self.rebooted = False
         self.target_state = None
         self.held_state = None
         self._last_cw = first_cw
-        self._ppm_pending = None
-        self._ppm_stage = 0
         self.attached = True
         self.hold(binding.raw_position)
+        # the first RxPDOs after a configuration carry every value anyway,
+        # and no transition is asked yet: nothing to wait for
+        self._settle = False
 
     def enabled_over_sdo(self, statusword: int) -> None:
         """The drive was brought to Operation Enabled over SDO before the
@@ -394,11 +233,12 @@ class Axis:
         read back by SDO: the axis holds that state from its first RxPDO on,
         with the targets ``attach`` held."""
         self.statusword = statusword
-        self.state = self.held_state = State.OPERATION_ENABLED
+        self._enabled()
+        self.state = self.held_state = self._seen_state = State.OPERATION_ENABLED
         self.target_state = None
         self.fault_reset = False
         self._last_cw = cia402.CW_ENABLE_OPERATION
-        self._set_out(CONTROLWORD, cia402.CW_ENABLE_OPERATION)
+        self.outputs.set(CONTROLWORD, cia402.CW_ENABLE_OPERATION)
         if self.active_mode is not None:
             self.mode_display = self.active_mode
 
@@ -407,38 +247,11 @@ class Axis:
         self.attached = False
 
     # ------------------------------------------------------------- read
-    def read(self, receiver: TpdoReceiver, now: float, cycle: int) -> None:
-        """Take the TPDO frames that came since the last cycle."""
-        vals = self._tx_vals
-        seen = self._tx_last
-        slots = receiver.slots
-        rejected = receiver.rejected
-        rejected_seen = self._rejected_seen
-        i = -1
-        for cob_id, length, unpack in self._tx_codec:
-            i += 1
-            n = rejected.get(cob_id, 0)
-            if n != rejected_seen[i]:
-                # frames of a wrong length, dropped by the receiver (counted
-                # from the first read after attach on)
-                if rejected_seen[i] is not None:
-                    self._count("bad_tpdo", n - rejected_seen[i])
-                rejected_seen[i] = n
-            frame = slots.get(cob_id)
-            if frame is None or frame is seen[i]:
-                continue
-            seen[i] = frame
-            if frame[2] < self._fresh_after:  # arrived before the node was (re)configured
-                continue
-            data = frame[0]
-            if len(data) != length:  # TxPdo.decode's check, inlined
-                self._count("bad_tpdo")
-                continue
-            vals[i] = unpack(data)
-            if i == self._status_pdo:
-                self.status_seen = frame[1]
-                self.status_seen_cycle = cycle
-                self.status_arrived = frame[2]
+    def read(self, receiver: TpdoReceiver, now: float, cycle: int, wall_offset: float = 0.0) -> None:
+        """Take the TPDO frames that came since the last cycle (Inputs.take)
+        and work out what they show; ``wall_offset``: time.time() minus
+        time.monotonic(), for the readings' stamp."""
+        vals = self._take_tpdos(receiver, now, cycle, wall_offset)
         si, sj = self._sw_at
         if vals[si] is None:
             return
@@ -447,8 +260,13 @@ class Axis:
             try:
                 state = cia402.state_from_statusword(sw)
             except ValueError:
-                self._count("undefined_statusword")
+                self.counters.add("undefined_statusword")
                 state = self.state
+            seen = self._seen_state
+            if state is _ENABLED and seen is not None and seen is not _ENABLED:
+                self._enabled()  # the drive came to Operation Enabled from another state
+            if state is not None:
+                self._seen_state = state
             self.statusword = sw
             self.state = state
         at = self._mode_at
@@ -462,30 +280,7 @@ class Axis:
             if vals[i] is not None:
                 env[name] = vals[i][j]
         env["pos"], env["vel"], env["eff"] = self.position, self.velocity, self.effort
-        # Expression.evaluate, inline (three calls less per axis per cycle)
-        pos, vel, eff = self._from_raw
-        cpos, cvel, ceff = self._from_const
-        if cpos is None:
-            try:
-                self.position = float(pos(env))
-            except EVALUATION_ERRORS:
-                self.position = math.nan
-        else:
-            self.position = cpos
-        if cvel is None:
-            try:
-                self.velocity = float(vel(env))
-            except EVALUATION_ERRORS:
-                self.velocity = math.nan
-        else:
-            self.velocity = cvel
-        if ceff is None:
-            try:
-                self.effort = float(eff(env))
-            except EVALUATION_ERRORS:
-                self.effort = math.nan
-        else:
-            self.effort = ceff
+        self.position, self.velocity, self.effort = self._readings(env)
         # _supervise has nothing to do while the drive stays in the state it
         # was brought to and nothing else is asked
         state = self.state
@@ -497,20 +292,23 @@ class Axis:
         if state is None:
             return
         if target is not None:
-            if (state == target and self.status_seen_cycle > self._confirm_after
-                    and self.status_arrived > self._requested_at):
+            inputs = self.inputs
+            if (state == target and inputs.status_seen_cycle > self._confirm_after
+                    and inputs.status_arrived > self._requested_at):
                 self.target_state = None
                 self.held_state = state
                 if state != State.FAULT:
                     self.fault_reset = False
                 return
             if state == State.FAULT and not self.fault_reset:
-                self.set_error("drive is in fault%s" % self._emcy_suffix())
+                self.set_error("drive is in fault%s" % self.inputs.emcy_suffix())
             return
         held = self.held_state
         if held is None or state == held:
             return
-        if (held, state) in _AUTOMATIC:
+        if (held, state) in _AUTOMATIC or self.quick_stop_hold and self.halted and state in _QUICK_STOPPED:
+            # the drive's own end of a quick stop, or the quick stop the
+            # driver stopped it with (a cyclic mode's halt)
             self.held_state = state
             return
         # The drive left the state on its own (fault, quick stop input, or a
@@ -519,10 +317,7 @@ class Axis:
         what = "fault" if state in (State.FAULT, State.FAULT_REACTION_ACTIVE) else state.value
         if what != "fault":
             self.quick_stop_hold = True
-        self.set_error("drive left %s, now %s%s" % (held.value, what, self._emcy_suffix() if what == "fault" else ""))
-
-    def _emcy_suffix(self) -> str:
-        return (": " + self.last_emcy) if self.last_emcy else ""
+        self.set_error("drive left %s, now %s%s" % (held.value, what, self.inputs.emcy_suffix() if what == "fault" else ""))
 
     def set_error(self, text: str, sight_lost: bool = False) -> None:
         """The driver's reaction to anything wrong with this axis: report it
@@ -536,38 +331,59 @@ class Axis:
         self.stop_in_place()
 
     def stop_in_place(self) -> None:
-        """Stop without a value the driver cannot vouch for: the halt bit in
-        the profile modes and homing (the drive decelerates on its profile),
-        and in the cyclic modes the last target the driver itself sent (CSP)
-        or zero (CSV, CST). Power stays on."""
+        """Stop the way the mode stops (modes.Mode.stop) without a value the
+        driver cannot vouch for: the halt bit in the profile modes and
+        homing (the drive decelerates on its profile), the drive's own quick
+        stop in the cyclic modes (it ramps at 0x6085); the targets stay the
+        last ones the driver itself sent. Power stays on."""
         self.halted = True
         self.command_kind = None
         self.command_value = math.nan
-        self._ppm_pending = None
-        mode = mode_of(self.active_mode)
-        if mode is not None and mode.cyclic and mode.command_kind != "position":
-            self._set_out(TARGET_OF_KIND[mode.command_kind], 0)
+        mode = self._modes.get(self.active_mode)
+        if mode is not None:
+            mode.stop(self)
 
     def hold(self, raw_position: int) -> None:
         """Targets to 'stay where you are' at a position read by SDO: used
-        before enabling and when switching modes, so nothing jumps."""
+        before enabling and when switching modes, so nothing jumps. They go
+        out in the next RxPDOs whether the driver sent the same values
+        before or not (the drive may hold values someone else sent), before
+        any controlword transition or release of the halt bit (_settle);
+        in profile position a set-point of that position too."""
         self.command_kind = None
         self.command_value = math.nan
-        for key, value in ((TARGET_POSITION, raw_position), (TARGET_VELOCITY, 0), (TARGET_TORQUE, 0)):
-            self._set_out(key, value)
+        for kind, value in (("position", raw_position), ("velocity", 0), ("effort", 0)):
+            self.send_target(kind, value)
         self.command_raw = raw_position
-        self._ppm_pending = raw_position if self.active_mode == PROFILE_POSITION.number else None
+        self._settle = True
+        self.target_position = self.from_device.position_of(raw_position, self.env)
+        mode = self._modes.get(self.active_mode)
+        if mode is not None:
+            mode.hold(self, raw_position)
+
+    def _enabled(self) -> None:
+        mode = self._modes.get(self.active_mode)
+        if mode is not None:
+            mode.enabled(self)
+
+    # ---------------------------------------------------- what modes use
+    def send_target(self, kind: str, value: int) -> None:
+        """A command kind's target, sent in this cycle's RxPDOs whether it
+        changed or not."""
+        self.outputs.send_target(kind, value)
+
+    def stop_with_quick_stop(self) -> None:
+        """Hold the drive with quick stop until a state is requested."""
+        self.quick_stop_hold = True
 
     # --------------------------------------------------------- watchdog
     def watch(self, now: float, cycle: int, period: float, pdo_timeout: float, pdo_cycles: int,
               reception: Optional[Tuple[float, float]] = None) -> None:
         """Heartbeat consumer, NMT state, boot-up and TxPDO watchdog for an
-        enabled axis (monotonic time). ``reception``: the receive clock's
-        progress (bus.ReceiveClock), when the latest frame read was read and
-        when it arrived."""
+        enabled axis (monotonic time; see Inputs.silence for ``reception``)."""
         if not self.ready or not self.attached:
             return
-        if self.rebooted:
+        if self.inputs.rebooted:
             # A boot-up outweighs an error that came first (a rebooting
             # drive's heartbeat stops before it): the user must learn that
             # the position reference is gone.
@@ -581,82 +397,14 @@ class Axis:
             return
         if self.error:
             return
-        if self.heartbeat_ms > 0 and self._heartbeat_missing(now, period, reception):
-            self.nmt_state = "LOST"
-            self.set_error("heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)"
-                           % ((now - self.last_heartbeat) * 1000, self.heartbeat_ms), sight_lost=True)
-        elif self.nmt_state in ("STOPPED", "PRE-OPERATIONAL"):
-            self.set_error("node left OPERATIONAL (heartbeat says %s)" % self.nmt_state, sight_lost=True)
-        elif cycle - self.status_seen_cycle >= pdo_cycles and now - self.status_seen > pdo_timeout:
-            # Counted in cycles too, so that a stall of this process (no
-            # SYNC sent) is not taken for a silent drive.
-            self.nmt_state = "LOST"
-            self.set_error("no statusword TxPDO in %d cycles (%.0f ms)" % (
-                cycle - self.status_seen_cycle, (now - self.status_seen) * 1000), sight_lost=True)
-
-    def _heartbeat_missing(self, now: float, period: float, reception: Optional[Tuple[float, float]]) -> bool:
-        """Nothing from the drive for 1.5 x 0x1017 + 2 cycles. Missing only
-        once the driver has read a frame that arrived after the heartbeat
-        was due (frames are read in the order they came), or has read
-        nothing at all for as long: a heartbeat still waiting unread behind
-        a stalled notifier is not a silent drive."""
-        limit = 1.5 * self.heartbeat_ms / 1000.0 + 2 * period
-        if now - self.last_heartbeat <= limit:
-            return False
-        return reception is None or reception[1] - self.last_heartbeat > limit or now - reception[0] > limit
-
-    def _count(self, what: str, n: int = 1) -> None:
-        self.counters[what] += n
-        self._counters_view = None
-
-    def on_heartbeat(self, data: bytes, now: float) -> None:
-        if now < self._fresh_after:
-            return  # from before the node was (re)configured: the boot-up of its reset
-        if len(data) != 1:
-            self._count("bad_heartbeat")
-            return
-        state = data[0] & 0x7F  # bit 7 is the toggle bit of node guarding
-        name = NMT_NAMES.get(state)
-        if name is None:
-            self._count("undefined_nmt_state")
-            return
-        self.last_heartbeat = now
-        self.nmt_state = name
-        if state == 0 and self.ready:
-            self.rebooted = True
-
-    def on_emcy(self, data: bytes, now: float = 0.0) -> None:
-        if len(data) < 3:
-            self._count("bad_emcy")
-            return
-        code = data[0] | data[1] << 8
-        self.error_register = data[2]
-        if code == 0:
-            if self._may_log_emcy(now):
-                log.info("%s (node %d): EMCY error reset", self.name, self.node_id)
-            return
-        text = "%s (error register 0x%02X)" % (describe_error(code), data[2])
-        if (text != self.last_emcy or now - self._emcy_logged > 1.0) and self._may_log_emcy(now):
-            self._emcy_logged = now
-            log.error("%s (node %d): EMCY %s", self.name, self.node_id, text)
-        self.last_emcy = text
-
-    def _may_log_emcy(self, now: float) -> bool:
-        """A storm of EMCYs (a drive in trouble, or forged frames with every
-        code) must not become a storm of log lines: they are written by the
-        cycle thread, and a log line costs far more than a cycle. At most
-        EMCY_LOG_LINES a second per axis; the others are counted."""
-        if now - self._emcy_window >= 1.0:
-            self._emcy_window = now
-            self._emcy_lines = 0
-        if self._emcy_lines >= EMCY_LOG_LINES:
-            self._count("emcy_not_logged")
-            return False
-        self._emcy_lines += 1
-        return True
+        problem = self._silence(now, cycle, period, pdo_timeout, pdo_cycles, reception)
+        if problem is not None:
+            self.set_error(problem, sight_lost=True)
 
     # --------------------------------------------------------- requests
-    def request_state(self, state: Optional[State], fault_reset: bool = False) -> None:
+    def request_state(self, state: Optional[State], fault_reset: bool = False,
+                      now: Optional[float] = None) -> None:
+        """``now``: when it was requested, on the driver's clock (monotonic)."""
         self.target_state = state
         self.fault_reset = fault_reset
         self.quick_stop_hold = False
@@ -665,8 +413,8 @@ class Axis:
         # meanwhile) and would end the request at once. "After" by when it
         # arrived, too: one read from a receive backlog may have arrived
         # seconds before the request.
-        self._confirm_after = self.status_seen_cycle
-        self._requested_at = time.monotonic()
+        self._confirm_after = self.inputs.status_seen_cycle
+        self._requested_at = time.monotonic() if now is None else now
 
     def mode_confirmed(self, number: int) -> None:
         """0x6061 read by SDO (modes display not mapped to a TPDO)."""
@@ -675,37 +423,24 @@ class Axis:
 
     def set_mode(self, number: int, raw_position: int) -> None:
         self.active_mode = number
-        self._set_out(MODES_OF_OPERATION, number)
+        self.outputs.set(MODES_OF_OPERATION, number)
         self.hold(raw_position)
 
     def set_output(self, key: ObjectKey, value: int) -> None:
         """A value set_object wrote by SDO to an object an RxPDO carries: the
         PDO carries the new value from now on."""
-        self._set_out(key, value)
+        self.outputs.set(key, value)
 
-    def _set_out(self, key: ObjectKey, value: int) -> None:
-        """An object's value in every RxPDO that carries it (none: no-op)."""
-        vals, dirty = self._out_vals, self._rx_dirty
-        for i, j in self._out_at.get(key, ()):
-            if vals[i][j] != value:
-                vals[i][j] = value
-                dirty[i] = True
-
-    def _set_target(self, kind: str, value: int) -> None:
-        """_set_out for a command kind's target object (positions worked out at attach)."""
-        vals, dirty = self._out_vals, self._rx_dirty
-        for i, j in self._target_out[kind]:
-            if vals[i][j] != value:
-                vals[i][j] = value
-                dirty[i] = True
-
-    def clear_error(self, statusword: int) -> None:
-        """An error cleared (recover), ``statusword`` read over SDO just now.
-        The statusword TPDO may be stale (a drive that left OPERATIONAL sent
-        none): the state is unknown until a fresh one comes, and until then
-        the controlword holds what the SDO answer shows."""
+    def clear_error(self, statusword: int, quick_stop_option: Optional[int] = None) -> None:
+        """An error cleared (recover), ``statusword`` and 0x605A read over SDO
+        just now (None: not read). The statusword TPDO may be stale (a drive
+        that left OPERATIONAL sent none): the state is unknown until a fresh
+        one comes, and until then the controlword holds what the SDO answer
+        shows."""
+        if quick_stop_option is not None:
+            self.quick_stop_option = quick_stop_option
         self.error = None
-        self.rebooted = False
+        self.inputs.rebooted = False
         self.halted = False
         self.last_refusal = ""
         self.quick_stop_hold = False
@@ -715,68 +450,68 @@ class Axis:
 
     # --------------------------------------------------------- commands
     def apply_command(self, kind: str, value: float) -> Result:
-        """A command from a controller, checked again now that it is applied."""
-        mode = _mode_get(self.active_mode)
-        # The common case decided in one expression: every condition of
-        # command_problem holds. Anything else takes command_problem for
-        # the reason (same checks, same order of messages).
-        if not (type(value) is float and _isfinite(value) and mode is not None and mode.command_kind == kind
-                and not self.error and self.ready and not self.halted and self.state is _ENABLED
-                and not self.homing):
-            problem = command_problem(self, kind, value)
-        else:
-            problem = None
+        """A command from a cycle callback, checked against the axis now."""
+        checked = check_command(self, kind, value, self.limits, self.converter, self.env)
+        if type(checked) is str:
+            return self._refuse(checked)
+        return self._take(checked)
+
+    def take(self, checked: Checked) -> Result:
+        """A command the caller's thread checked against a snapshot: taken
+        unless the axis's state changed since (no second conversion)."""
+        problem = state_problem(self, checked.kind)
         if problem:
-            self._count("refused_commands")
-            self.last_refusal = problem
-            return fail(problem)
-        value, clipped = saturate(self.limits, kind, float(value))
-        if clipped:
-            self._count("clipped_commands")
-        raw, err = self.converter.convert(kind, value, self.env)
-        if err:
-            self._count("refused_commands")
-            self.last_refusal = err
-            return fail(err)
-        self.command_kind = kind
-        self.command_value = value
-        self.command_raw = raw
-        if mode is PROFILE_POSITION:
-            self._ppm_pending = raw
-        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if clipped else OK
+            return self._refuse(problem)
+        return self._take(checked)
+
+    def _refuse(self, problem: str) -> Result:
+        self.counters.add("refused_commands")
+        self.last_refusal = problem
+        return fail(problem)
+
+    def _take(self, checked: Checked) -> Result:
+        if checked.clipped:
+            self.counters.add("clipped_commands")
+        self.command_kind = checked.kind
+        self.command_value = checked.value
+        self.command_raw = checked.raw
+        if checked.kind == "position":
+            self.target_position = checked.value
+        mode = self._modes.get(self.active_mode)
+        if mode is not None:
+            mode.command(self, checked.raw)
+        return ok("clipped to the joint limits (%s)" % self.limits.describe()) if checked.clipped else OK
 
     # ------------------------------------------------------------ write
-    def _controlword(self, mode: Any = None) -> int:
-        """The next controlword; ``mode`` is mode_of(active_mode) (write has it)."""
+    def _controlword(self, mode: Optional[Mode]) -> int:
+        """The next controlword; ``mode`` is the running mode (write has it)."""
         state = self.state
         target = self.target_state
         if state is None:
-            return self._last_cw & ~cia402.CW_FAULT_RESET_BIT
+            return self._last_cw & _CW_NO_FAULT_RESET
         if target is not None and state != target:
+            if self._settle:
+                return self._last_cw & _CW_NO_FAULT_RESET
             if state == State.FAULT:
                 if not self.fault_reset:
                     return self._hold_cw()
                 # Fault reset acts on the rising edge of bit 7.
                 return 0 if self._last_cw & cia402.CW_FAULT_RESET_BIT else cia402.CW_FAULT_RESET
-            cw = cia402.next_controlword(state, target)
+            cw = cia402.next_controlword(state, target, self.quick_stop_option)
             if cw is None:
-                return self._last_cw & ~cia402.CW_FAULT_RESET_BIT
-            if cw == cia402.CW_ENABLE_OPERATION and self.halted:
+                return self._last_cw & _CW_NO_FAULT_RESET
+            if cw == cia402.CW_ENABLE_OPERATION and self._keeps_halt(mode):
                 cw |= cia402.CW_HALT
             return cw
         cw = self._hold_cw()
-        if self.held_state is not _ENABLED or self.halted:
+        if cw != cia402.CW_ENABLE_OPERATION or mode is None or self.mode_display != mode.number:
             return cw
-        if mode is None:
-            mode = _mode_get(self.active_mode)
-        if mode is None or self.mode_display != mode.number:
-            return cw
-        if mode is HOMING:
-            if self.homing:
-                cw |= cia402.CW_HOMING_START
-        elif mode is PROFILE_POSITION:
-            cw |= self._ppm_bits()
-        return cw
+        return cw | mode.controlword_bits(self)
+
+    def _keeps_halt(self, mode: Optional[Mode]) -> bool:
+        """The halt bit stays set: halted, targets not yet out (_settle), or
+        the mode not yet sure the drive holds the driver's own target."""
+        return self.halted or self._settle or (mode is not None and mode.holding())
 
     def _hold_cw(self) -> int:
         if self.quick_stop_hold:
@@ -789,47 +524,19 @@ class Axis:
             return cia402.CW_QUICK_STOP
         held = self.held_state
         if held is _ENABLED:  # the running case, without hashing the enum
-            return cia402.CW_ENABLE_OPERATION | cia402.CW_HALT if self.halted else cia402.CW_ENABLE_OPERATION
-        cw = _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE) if held is not None else self._last_cw & ~cia402.CW_FAULT_RESET_BIT
-        if held == State.OPERATION_ENABLED and self.halted:
-            cw |= cia402.CW_HALT
-        return cw
-
-    def _ppm_bits(self) -> int:
-        """Profile position set-point handshake, change set immediately.
-
-        The target goes out one cycle before the new set-point edge: a drive
-        may apply the RPDO with the controlword before the one with 0x607A
-        at the same SYNC, and would then take the old target.
-        Stages: 0 idle, 3 target sent, 1 edge sent (wait for set-point
-        acknowledge, statusword bit 12), 2 edge cleared (wait for ack to drop).
-        """
-        ack = self.statusword & cia402.SW_SET_POINT_ACKNOWLEDGE
-        bits = cia402.CW_CHANGE_SET_IMMEDIATELY
-        stage = self._ppm_stage
-        if stage == 3:
-            self._ppm_stage = 1
-            return bits | cia402.CW_NEW_SET_POINT
-        if stage == 1:
-            if not ack:
-                return bits | cia402.CW_NEW_SET_POINT
-            self._ppm_stage = stage = 2
-        if stage == 2:
-            if ack:
-                return bits
-            self._ppm_stage = 0
-        if self._ppm_pending is not None:
-            self._set_out(TARGET_POSITION, self._ppm_pending)
-            self._ppm_pending = None
-            self._ppm_stage = 3
-        return bits
+            if self.halted or self._settle:
+                return cia402.CW_ENABLE_OPERATION | cia402.CW_HALT
+            return cia402.CW_ENABLE_OPERATION
+        if held is None:
+            return self._last_cw & _CW_NO_FAULT_RESET
+        return _HOLD.get(held, cia402.CW_DISABLE_VOLTAGE)
 
     def write(self, send: Callable[[int, bytes], None]) -> None:
-        """Fill the RxPDOs from this axis's own fields and send those that
-        changed; the controlword PDO and the cyclic target's PDO go out
-        every cycle."""
-        mode = _mode_get(self.active_mode)
+        """Fill the RxPDOs from this axis's own fields and send them (see
+        Outputs.send for which go out)."""
+        mode = self._modes.get(self.active_mode)
         cyclic_rx = -1
+        target_kind = None
         if mode is not None:
             kind = mode.command_kind
             if mode.cyclic:
@@ -843,79 +550,28 @@ class Axis:
                         else:
                             self.command_raw = raw
                     if not self.halted:
-                        raw = self.command_raw
-                        vals, dirty = self._out_vals, self._rx_dirty
-                        for i, j in self._target_out[kind]:  # _set_target, inline: every cycle
-                            if vals[i][j] != raw:
-                                vals[i][j] = raw
-                                dirty[i] = True
-                cyclic_rx = self._cyclic_rx_of[kind]
-            elif kind == "velocity" and self.command_kind == "velocity" and not self.halted:
-                self._set_target("velocity", self.command_raw)
+                        target_kind = kind
+                cyclic_rx = self.outputs.cyclic_rx_of[kind]
         if cyclic_rx >= 0 and self.target_state is None and self.held_state is _ENABLED \
-                and self.state is not None and not self.halted:
+                and self.state is not None and not self.halted and not self._settle:
             cw = cia402.CW_ENABLE_OPERATION  # what _controlword answers in a running cyclic mode
         else:
             cw = self._controlword(mode)
-        vals, dirty = self._out_vals, self._rx_dirty
-        for i, j in self._cw_out:
-            if vals[i][j] != cw:
-                vals[i][j] = cw
-                dirty[i] = True
         self._last_cw = cw
-        # The controlword PDO goes out every cycle, as with ros_canopen, so
-        # drive and master stay in step even if a frame was lost; the cyclic
-        # target's PDO too; the others when they change and every REFRESH
-        # cycles. A PDO is packed again only when a value in it changed
-        # (after a pack, the last frame sent holds exactly these values).
-        self._tick += 1
-        refresh = self._tick % REFRESH_CYCLES == 0
-        last = self._rx_last
-        cw_rx = self._cw_rx
-        i = -1
-        for cob_id, pack in self._rx_codec:
-            i += 1
-            if dirty[i]:
-                data = pack(*vals[i])
-                dirty[i] = False
-                if data != last[i] or i == cw_rx or i == cyclic_rx or refresh:
-                    last[i] = data
-                    send(cob_id, data)
-            elif i == cw_rx or i == cyclic_rx or refresh:
-                send(cob_id, last[i])
+        self._settle = False
+        self._send(send, cw, cyclic_rx, target_kind, self.command_raw)
 
     # --------------------------------------------------------- snapshot
     def snapshot(self) -> AxisSnapshot:
         # tuple.__new__ straight from the field values: what AxisSnapshot(...)
         # does, minus its Python-level __new__ (this runs per axis per cycle)
+        inputs, counters = self.inputs, self.counters
         return _tuple_new(AxisSnapshot, (
             self.name, self.node_id, self.key, self.position, self.velocity, self.effort, self.raw_position,
-            self.statusword, self.state, self.mode_display, self.active_mode, self.nmt_state, self.error,
+            self.statusword, self.state, self.mode_display, self.active_mode, inputs.nmt_state, self.error,
             self.halted, self.homing, self.ready, self.attached, self.target_state, self.held_state,
-            self.last_emcy, self.error_register, self.heartbeat_ms, self.rebooted, self.command_kind,
+            inputs.last_emcy, inputs.error_register, inputs.heartbeat_ms, inputs.rebooted, self.command_kind,
             self.command_value, self.last_refusal,
-            self._tx_keys, tuple(self._tx_vals),
-            self._counters_view or self._counters(), self.limits, self.plan, self.status_seen_cycle))
-
-    def _counters(self) -> Mapping[str, int]:
-        view = self._counters_view
-        if view is None:
-            view = self._counters_view = MappingProxyType(dict(self.counters))
-        return view
-
-
-def initial_snapshot(cfg: NodeConfig, plan: NodePlan, limits: JointLimits) -> AxisSnapshot:
-    """What status shows for an axis before the first init."""
-    return AxisSnapshot(cfg.name, cfg.node_id, cfg.key, math.nan, math.nan, math.nan, 0, 0, None, 0, None,
-                        "UNKNOWN", None, False, False, False, False, None, None, "", 0, 0, False, None, math.nan,
-                        "", (), (), MappingProxyType({}), limits, plan, 0)
-
-
-def env_for_check(snapshot: AxisSnapshot, initial_env: Mapping[str, float]) -> Dict[str, float]:
-    """An environment for converting a command outside the cycle: the
-    objects of the latest snapshot (plus those read by SDO at init)."""
-    env: Dict[str, float] = dict(initial_env)
-    for key, value in snapshot.readings.items():
-        env[object_variable_name(key)] = value
-    env["pos"], env["vel"], env["eff"] = snapshot.position, snapshot.velocity, snapshot.effort
-    return env
+            inputs.keys, tuple(inputs.vals),
+            counters.shown or counters.view(), self.limits, self.plan, inputs.status_seen_cycle, inputs.stamp,
+            self.target_position, tuple(inputs.arrived), inputs.read_at, self._last_cw))

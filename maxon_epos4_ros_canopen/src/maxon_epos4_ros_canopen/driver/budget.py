@@ -21,8 +21,10 @@ without SYNC):
 * the SYNC (1 data byte with the overflow counter, else none);
 * the master's heartbeat (``heartbeat/rate``) and every drive's (0x1017
   from the DCF or ``dcf_overlay``), scaled to the period;
-* per axis, TxPDOs by transmission type (type n: every n-th SYNC; event
-  driven: every event timer or cycle) and the RxPDOs the cycle sends every
+* per axis, TxPDOs by transmission type (CiA 301: type 0, acyclic
+  synchronous, at worst every SYNC; type n in 1..240 every n-th SYNC;
+  252/253, on remote request only, never, as the driver sends no RTR;
+  254/255, event driven, every event timer, else every cycle) and the RxPDOs the cycle sends every
   period: the one with the controlword and those with the targets of the
   node's modes (a PPM/PVM target may change every cycle: counted as such);
   other RxPDOs are sent on change and refreshed every ``REFRESH_CYCLES``.
@@ -36,8 +38,8 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Mapping, Optional, Sequence, Tuple, Union
 
-from ..config import DriverConfig, NodeConfig
-from .axis import REFRESH_CYCLES  # the cycle resends an unchanged RxPDO this often
+from ..config_schema import DriverConfig, NodeConfig
+from .outputs import REFRESH_CYCLES  # the cycle resends an unchanged RxPDO this often
 from .plan import CONTROLWORD, MODE_TARGETS, PRODUCER_HEARTBEAT, RX_REQUIRED, MapPlan, NodePlan
 
 DEFAULT_BITRATE = 1_000_000
@@ -141,6 +143,20 @@ def _heartbeat_ms(plan: NodePlan) -> int:
     return 0
 
 
+def tpdo_per_sync(m: MapPlan, sync_ms: float, update_ms: float) -> float:
+    """Frames of a TxPDO per SYNC period (per cycle without SYNC), by its
+    transmission type (see the module text)."""
+    t = m.trans_type
+    period_ms = sync_ms if sync_ms > 0 else update_ms
+    if sync_ms > 0 and t <= 240:
+        return 1.0 / max(1, t)
+    if 241 <= t <= 251:
+        raise ValueError("TxPDO%d: transmission type %d is reserved (CiA 301)" % (m.number, t))
+    if t in (252, 253):
+        return 0.0
+    return period_ms / float(m.event_timer or update_ms)
+
+
 def axis_budget(node: NodeConfig, plan: NodePlan, config: DriverConfig) -> AxisBudget:
     """Frames of one axis per SYNC period (see the module text for the rules)."""
     sync = config.sync
@@ -160,12 +176,9 @@ def axis_budget(node: NodeConfig, plan: NodePlan, config: DriverConfig) -> AxisB
     for m in plan.tx:
         if not (m.enabled and m.entries):
             continue
-        if sync.interval_ms > 0 and m.trans_type <= 240:
-            per_sync = 1.0 / max(1, m.trans_type)  # type 0 (acyclic): at worst every SYNC
-        else:
-            timer_s = (m.event_timer or sync.update_ms) / 1000.0
-            per_sync = period / timer_s
-        frames.append(Frame("TxPDO%d" % m.number, m.cob_id, _payload(m), per_sync))
+        per_sync = tpdo_per_sync(m, sync.interval_ms, sync.update_ms)
+        if per_sync > 0:
+            frames.append(Frame("TxPDO%d" % m.number, m.cob_id, _payload(m), per_sync))
     hb = _heartbeat_ms(plan)
     if hb > 0:
         frames.append(Frame("heartbeat", 0x700 + node.node_id, 1, period / (hb / 1000.0)))
@@ -211,9 +224,18 @@ def check_budget(config: DriverConfig, plans: Plans, bitrate: Optional[int] = No
         return None
     return ("CAN bus budget: %.0f %% of %d bit/s in use at a %.3g ms SYNC period (%d axes, %.1f frames, "
             "%.0f bits per period with worst-case stuffing); at most %d such axes stay under %.0f %%: "
-            "use pdo_layout: compact, a longer sync/interval_ms or fewer axes on this bus"
+            "use pdo_layout: compact (with readings_every: N, the readings beside the statusword and "
+            "position every N-th SYNC), a longer sync/interval_ms or fewer axes on this bus"
             % (100 * b.load, b.bitrate, b.period_s * 1000, len(b.axes), b.frames_per_sync, b.bits_per_sync,
                b.max_axes(LOAD_LIMIT), 100 * LOAD_LIMIT))
+
+
+def _rate(per_sync: float) -> str:
+    if per_sync == 1.0:
+        return "every period"
+    if per_sync > 0 and abs(1.0 / per_sync - round(1.0 / per_sync)) < 1e-9:
+        return "every %d periods" % round(1.0 / per_sync)
+    return "%.3g per period" % per_sync
 
 
 def format_budget(b: BusBudget) -> str:
@@ -229,25 +251,34 @@ def format_budget(b: BusBudget) -> str:
             a.pdo_frames_per_sync, a.frames_per_sync, a.bits_per_sync))
     for f in b.shared:
         lines.append("%-22s %4s %-8s %-10s %13s %12.2f %13.0f" % (f.name, "", "", "", "", f.per_sync, f.bits))
+    shown: Tuple[Tuple[str, int, float], ...] = ()
+    for a in b.axes:  # each axis whose frames differ from the one above
+        kinds = tuple((f.name, f.data_bytes, f.per_sync) for f in a.frames)
+        if kinds != shown:
+            lines.append("  %s: %s" % (a.name, ", ".join("%s %d B %s" % (f.name, f.data_bytes, _rate(f.per_sync))
+                                                         for f in a.frames)))
+            shown = kinds
     lines.append("total: %.2f frames and %.0f bits per period = %.0f frames/s, %.0f bit/s, load %.1f %%"
                  % (b.frames_per_sync, b.bits_per_sync, b.frames_per_sync / b.period_s,
                     b.bits_per_sync / b.period_s, 100 * b.load))
     lines.append("axes like the most demanding one: at most %d under %.0f %% load, %d at 100 %%"
                  % (b.max_axes(LOAD_LIMIT), 100 * LOAD_LIMIT, b.max_axes(1.0)))
+    if b.axes:
+        lines.append("PDO frames per axis per period: %.3g on average"
+                     % (sum(a.pdo_frames_per_sync for a in b.axes) / len(b.axes)))
     return "\n".join(lines)
 
 
 def plan_config(config: DriverConfig) -> "Mapping[str, NodePlan]":
     """Every node's plan, as the driver makes it at start (no bus needed)."""
-    import canopen
-
-    from ..config import ConfigError
+    from ..config_schema import ConfigError
+    from ..objects import load_dictionary
     from .plan import plan_node
 
     plans = {}
     for n in config.nodes:
         try:
-            od = canopen.import_od(n.eds_file, n.node_id)
+            od = load_dictionary(n.eds_file, n.node_id)
         except Exception as e:  # canopen raises many kinds on a bad file
             raise ConfigError(config.source, "nodes/%s/eds_file" % n.key, "cannot read %s: %s" % (n.eds_file, e)) from None
         plans[n.name] = plan_node(n, od, config.sync, config.source, config.heartbeat)
@@ -260,7 +291,8 @@ def main(argv: Optional[Sequence[str]] = None, resolver: Optional[Callable[[str]
     most 80 %, 1 above, 2 on a configuration error."""
     import argparse
 
-    from ..config import ConfigError, load_config, load_yaml_files
+    from ..config import ConfigError, load_config
+    from ..config_reader import load_yaml_files
 
     ap = argparse.ArgumentParser(prog="bus_budget", description="CAN bus load of a driver configuration "
                                  "(frames and bits per SYNC period, worst-case bit stuffing).")

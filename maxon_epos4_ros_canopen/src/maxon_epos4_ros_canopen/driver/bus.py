@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import logging
 import select
-import threading
-import time
-from typing import Callable, List, Optional, Sequence, Tuple
+from typing import Any, Callable, List, Optional, Sequence, Tuple
 
 import can
 
 from ..can_device import MAX_RECEIVE_LAG, ArrivalClock, open_device
-from ..config import BusConfig, HeartbeatConfig
+from ..clock import REAL, Clock
+from ..config_schema import BusConfig, HeartbeatConfig
 
 SYNC_COB_ID = 0x080
 # A receive timestamp further than this from the host's wall clock is taken
@@ -46,12 +45,14 @@ class SyncProducer:
 
     While started, ``index_at(t)``/``counter_at(t)``/``next_after(t)`` give
     the schedule (SYNC number, its counter, the next SYNC's time, all on
-    ``time.monotonic()``), so a cycle can be paced between kernel SYNCs:
-    its RxPDOs only have to land before the next SYNC.
+    ``clock``), so a cycle can be paced between kernel SYNCs: its RxPDOs
+    only have to land before the next SYNC. Without a kernel timer the
+    clock runs the periodic task (a thread, or a stepped clock's event).
     """
 
-    def __init__(self, bus: can.BusABC, overflow: int) -> None:
+    def __init__(self, bus: can.BusABC, overflow: int, clock: Clock = REAL) -> None:
         self.bus = bus
+        self.clock = clock
         self.overflow = overflow
         self.counter = 0          # counter of the last send() (0: none yet or no counter)
         self.sent = 0             # SYNCs sent by send()
@@ -60,7 +61,7 @@ class SyncProducer:
         self.first_at: Optional[float] = None   # monotonic time of the first periodic SYNC
         self._msg = can.Message(arbitration_id=SYNC_COB_ID, is_extended_id=False,
                                 data=b"\x00" if overflow else b"")
-        self._task: Optional[can.broadcastmanager.CyclicSendTaskABC] = None
+        self._task: Any = None
         self.send_errors: Optional[SendErrors] = None  # the thread's, when the thread sends
 
     def _advance(self, msg: can.Message) -> None:
@@ -86,9 +87,10 @@ class SyncProducer:
         if not period_s > 0:
             raise ValueError("SYNC period must be > 0, not %r" % (period_s,))
         self.stop()
-        task, self.send_errors = start_periodic(self.bus, self.frames(), period_s, "SYNC", kernel)
+        task, self.send_errors = start_periodic(self.bus, self.frames(), period_s, "SYNC", kernel,
+                                                clock=self.clock)
         self.kernel_timed = self.send_errors is None
-        self.first_at = time.monotonic() + (period_s if self.kernel_timed else 0.0)
+        self.first_at = self.clock.now() + (period_s if self.kernel_timed else 0.0)
         self.period = period_s
         self._task = task
 
@@ -139,14 +141,15 @@ class SendErrors:
 
 
 def start_periodic(bus: can.BusABC, msgs: Sequence[can.Message], period_s: float, what: str,
-                   kernel: bool = True, store_task: bool = False
-                   ) -> Tuple[can.broadcastmanager.CyclicSendTaskABC, Optional[SendErrors]]:
+                   kernel: bool = True, store_task: bool = False, clock: Clock = REAL
+                   ) -> Tuple[Any, Optional[SendErrors]]:
     """msgs sent in turn every period_s, the task and its SendErrors: the
     broadcast manager sends them on SocketCAN (errors None: the kernel's
     timer goes on whatever a send meets; store_task: the bus's shutdown
     ends the task), python-can's sender thread everywhere else, through
     SendErrors (a kernel without can-bcm too, with a warning naming
-    ``what``); kernel=False forces the thread."""
+    ``what``); kernel=False forces the thread. The thread is ``clock``'s:
+    a stepped clock runs the sends as its events. Either task has stop()."""
     if kernel and is_socketcan(bus):
         try:
             # no modifier callback: python-can then uses BCM, which sends
@@ -155,11 +158,10 @@ def start_periodic(bus: can.BusABC, msgs: Sequence[can.Message], period_s: float
         except (OSError, can.CanError) as e:  # can-bcm not loaded
             log.warning("%s: no kernel timer on %s (%s): sending from a thread", what, bus.channel_info, e)
     errors = SendErrors(bus)
-    # on_error: whatever SendErrors does not catch, python-can logs, and
-    # the thread goes on; its first frame goes out at once
-    task = can.broadcastmanager.ThreadBasedCyclicSendTask(errors, threading.Lock(), list(msgs), period_s,
-                                                          on_error=lambda e: True)
-    return task, errors
+    # RealClock: python-can's sender thread (on_error: whatever SendErrors
+    # does not catch, python-can logs, and the thread goes on); its first
+    # frame goes out at once
+    return clock.send_periodic(errors, list(msgs), period_s, what), errors
 
 
 def is_socketcan(bus: can.BusABC) -> bool:
@@ -174,17 +176,18 @@ def is_socketcan(bus: can.BusABC) -> bool:
 class HeartbeatProducer:
     """The master's own heartbeat, a fixed frame sent at ``rate`` Hz."""
 
-    def __init__(self, bus: can.BusABC, cfg: HeartbeatConfig) -> None:
+    def __init__(self, bus: can.BusABC, cfg: HeartbeatConfig, clock: Clock = REAL) -> None:
         self.bus = bus
+        self.clock = clock
         self.period_s = 1.0 / cfg.rate
         self._msg = can.Message(arbitration_id=cfg.can_id, data=cfg.data, is_extended_id=cfg.extended)
-        self._task: Optional[can.broadcastmanager.CyclicSendTaskABC] = None
+        self._task: Any = None
         self.send_errors: Optional[SendErrors] = None  # the thread's, when the thread sends
 
     def start(self) -> None:
         if self._task is None:
             self._task, self.send_errors = start_periodic(self.bus, [self._msg], self.period_s, "heartbeat",
-                                                          store_task=True)
+                                                          store_task=True, clock=self.clock)
 
     def stop(self) -> None:
         if self._task is not None:
@@ -223,21 +226,23 @@ class ReceiveClock(can.Listener):
     (``can_device.ArrivalClock``). An SDO transfer waiting for its answer
     asks ``unread_before`` the same question.
 
-    It is the notifier's first listener: the subscribers the notifier calls
-    after it take the frame's times from ``progress`` instead of reading a
-    clock each. ``progress`` is replaced whole by the notifier thread, one
+    The notifier's listener (link._Reception) calls it first for every
+    frame: the subscribers it calls after it take the frame's times from
+    ``progress`` instead of reading a clock each. ``progress`` is replaced whole by the notifier thread, one
     immutable tuple: (monotonic time the latest frame was read, when it
     arrived)."""
 
-    def __init__(self, unread: Callable[[], bool] = lambda: False, max_lag: float = MAX_RECEIVE_LAG) -> None:
-        now = time.monotonic()
+    def __init__(self, unread: Callable[[], bool] = lambda: False, max_lag: float = MAX_RECEIVE_LAG,
+                 clock: Clock = REAL) -> None:
+        self._now = clock.now
+        now = self._now()
         self.progress: Tuple[float, float] = (now, now)
         self._unread = unread
-        self._arrival = ArrivalClock(max_lag=max_lag)
+        self._arrival = ArrivalClock(clock.now, max_lag=max_lag, wall=clock.wall)
         self.max_lag = max_lag  # the longest backlog it can tell (can_device.max_receive_lag)
 
     def on_message_received(self, msg: can.Message) -> None:
-        now = time.monotonic()
+        now = self._now()
         self.progress = (now, self._arrival.arrival(msg.timestamp, now))
 
     def times(self) -> Tuple[float, float]:

@@ -15,9 +15,10 @@ latest-value message, not shared mutable state.
 """
 from __future__ import annotations
 
+import math
 import struct
 import time
-from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ObjectDictionary
 
@@ -25,6 +26,8 @@ from ..objects import ObjectKey, find_variable
 from .plan import MapPlan
 
 Frame = Tuple[bytes, float, float]  # payload, when it was read and when it arrived (time.monotonic())
+# SYNC times a receiver keeps: enough for a notifier that lags a few periods
+_SYNC_HISTORY = 16
 
 
 class PdoLayoutError(ValueError):
@@ -91,25 +94,87 @@ class TpdoReceiver:
     A frame whose length is not its mapping's is counted in ``rejected``
     (written by the notifier thread alone) and never stored: stored, a short
     forged frame would take the place of the drive's last good one and, if
-    the drive's next frame came before the cycle read it, go unnoticed."""
+    the drive's next frame came before the cycle read it, go unnoticed.
+
+    A SYNC-driven TPDO (transmission type 0..240) comes at most once
+    between two consecutive SYNCs; a second frame on its COB-ID in one SYNC
+    period is a conflict (another node on that COB-ID, or a forger) and is
+    counted in ``conflicts`` (notifier thread alone). Which period a frame
+    belongs to is told by arrival times, not by the order the notifier
+    happens to handle things in: a SYNC's time comes from ``sync_sent`` (the
+    cycle, for the SYNCs it sends itself, which the bus does not echo back
+    to their sender) or ``on_sync`` (a SYNC heard on the bus: the kernel's
+    broadcast manager or another producer). Until a SYNC is known, and for
+    TPDOs sent on an event timer or an event (254, 255), nothing is counted.
+    """
 
     def __init__(self, lengths: Mapping[int, int],
-                 clock: Callable[[], Tuple[float, float]] = _read_on_arrival) -> None:
+                 clock: Callable[[], Tuple[float, float]] = _read_on_arrival,
+                 sync_driven: Iterable[int] = ()) -> None:
         self.cob_ids = tuple(lengths)
         self.lengths = dict(lengths)
         self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
         self.rejected: Dict[int, int] = {c: 0 for c in self.cob_ids}
+        self.conflicts: Dict[int, int] = {c: 0 for c in self.cob_ids}
+        # rejected plus conflicts, all COB-IDs (notifier thread alone): a
+        # reader that saw this number unchanged has no count to look up
+        self.anomalies = 0
         self._clock = clock  # (when the frame being handled was read, when it arrived)
+        # per SYNC-driven COB-ID, when its last well-formed frame arrived (notifier thread)
+        self._arrived: Dict[int, float] = {c: -math.inf for c in sync_driven if c in self.lengths}
+        # Times of recent SYNCs, newest first, each tuple replaced whole by
+        # its one writer: the cycle (sent) and the notifier (heard).
+        self._sent: Tuple[float, ...] = ()
+        self._heard: Tuple[float, ...] = ()
+
+    def sync_sent(self, t: float) -> None:
+        """The cycle is about to send a SYNC (monotonic ``t``, taken before
+        the send: every frame answering it arrives later)."""
+        self._sent = (t,) + self._sent[:_SYNC_HISTORY - 1]
+
+    def on_sync(self, _can_id: int, _data: Any, _timestamp: float) -> None:
+        """canopen.Network subscriber callback for SYNC frames heard on the bus."""
+        self._heard = (self._clock()[1],) + self._heard[:_SYNC_HISTORY - 1]
+
+    def last_sync_heard(self) -> float:
+        """When the latest SYNC heard on the bus arrived (-inf: none yet)."""
+        heard = self._heard
+        return heard[0] if heard else -math.inf
+
+    def _period_start(self, t: float) -> float:
+        """Time of the latest known SYNC at or before ``t`` (-inf: none known)."""
+        start = -math.inf
+        for times in (self._sent, self._heard):
+            for s in times:  # newest first
+                if s <= t:
+                    if s > start:
+                        start = s
+                    break
+        return start
 
     def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback: never raises."""
         if len(data) != self.lengths[can_id]:
             self.rejected[can_id] += 1
+            self.anomalies += 1  # after the count: a reader that sees this sees the count
             return
-        self.slots[can_id] = (bytes(data),) + self._clock()
+        times = self._clock()
+        self.slots[can_id] = (bytes(data),) + times
+        last = self._arrived.get(can_id)
+        if last is not None:
+            arrived = times[1]
+            if last >= self._period_start(arrived) > -math.inf:
+                self.conflicts[can_id] += 1
+                self.anomalies += 1
+            self._arrived[can_id] = arrived
 
     def latest(self, cob_id: int) -> Optional[Frame]:
         return self.slots.get(cob_id)
+
+
+def sync_driven(plans: Sequence[MapPlan]) -> List[int]:
+    """COB-IDs of the enabled TPDOs sent on SYNC (transmission types 0..240)."""
+    return [p.cob_id for p in enabled_maps(plans) if 0 <= p.trans_type <= 240]
 
 
 def enabled_maps(plans: Sequence[MapPlan]) -> List[MapPlan]:

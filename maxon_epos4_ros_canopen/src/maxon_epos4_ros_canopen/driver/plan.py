@@ -16,12 +16,12 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 from canopen.objectdictionary import ODArray, ODRecord, ODVariable, ObjectDictionary
 from canopen.objectdictionary import datatypes as dt
 
-from ..config import ConfigError, HeartbeatConfig, NodeConfig, SyncConfig
+from ..config_schema import ConfigError, HeartbeatConfig, NodeConfig, SyncConfig
 from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, encode_value,
                        find_variable, is_writable)
 from .modes import (CONTROLWORD, MODES, MODES_DISPLAY, MODES_OF_OPERATION, POSITION_ACTUAL, STATUSWORD,
@@ -95,10 +95,37 @@ class NodePlan:
     source: str
     modes: Tuple[int, ...] = ()
 
+    def write_with_canopen(self, node: Any) -> None:
+        """Write this plan's PDO maps to a drive through python-canopen's own
+        PDO classes (``node``: a ``canopen.RemoteNode``): an independent
+        master that sets up the same PDOs, for benchmarks and for tests that
+        hold the plan against the wire."""
+        for plans, maps in ((self.rx, node.rpdo.map), (self.tx, node.tpdo.map)):
+            for mp in plans:
+                pdo = maps[mp.number]
+                pdo.clear()
+                for key, bits in mp.entries:
+                    pdo.add_variable(key.index, key.subindex, bits)
+                pdo.cob_id, pdo.enabled, pdo.trans_type = mp.cob_id, mp.enabled, mp.trans_type
+                pdo.save()
+
     @cached_property
     def written(self) -> Mapping[ObjectKey, bytes]:
         """The data init writes to each object (DCF values and overlay)."""
         return {w.key: w.data for w in self.writes}
+
+    def configured_value(self, od: ObjectDictionary, key: ObjectKey) -> Optional[int]:
+        """The value init writes to ``key`` (DCF or overlay), else the
+        dictionary's default; None when the dictionary lacks the object."""
+        try:
+            var = find_variable(od, key)
+        except ObjectStringError:
+            return None
+        data = self.written.get(key)
+        if data is not None:
+            return int(var.decode_raw(data))
+        value = var.default if var.value is None else var.value
+        return None if value is None else int(value)
 
     def rx_keys(self) -> List[ObjectKey]:
         return [k for m in self.rx if m.enabled for k, _ in m.entries]
@@ -123,6 +150,17 @@ class NodePlan:
         when needed (0x6061 to confirm a mode switch)."""
         have = set(self.tx_keys())
         return [k for k in TX_REQUIRED if k not in have]
+
+    def tx_period_ms(self, key: ObjectKey, sync: SyncConfig) -> Optional[float]:
+        """How often a TxPDO brings ``key`` (ms), as planned: a type-N PDO
+        every N SYNC periods, an event-timer PDO every timer; None when no
+        TxPDO carries it or when it comes only on change."""
+        for m in self.tx:
+            if m.enabled and any(k == key for k, _ in m.entries):
+                if sync.interval_ms > 0 and 1 <= m.trans_type <= 240:
+                    return m.trans_type * sync.interval_ms
+                return float(m.event_timer) if m.event_timer else None
+        return None
 
     def supports(self, mode: int) -> bool:
         """Whether the layout carries what ``mode`` needs every cycle."""
@@ -231,13 +269,18 @@ def _pack(od: ObjectDictionary, keys: Sequence[ObjectKey]) -> List[List[Tuple[Ob
 
 
 def compact_maps(od: ObjectDictionary, node_id: int, modes: Sequence[int],
-                 tx_objects: Sequence[ObjectKey]) -> Tuple[List[MapPlan], List[MapPlan]]:
+                 tx_objects: Sequence[ObjectKey], readings_every: int = 1) -> Tuple[List[MapPlan], List[MapPlan]]:
     """The compact layout: RxPDOs carry the controlword and the targets of
     ``modes`` (cyclic modes' targets first, so the one sent every SYNC
     shares a frame with the controlword); TxPDOs the statusword, the
     position actual value and ``tx_objects`` (what the unit conversions
     read). Modes of operation (0x6060/0x6061) are left to SDO: they change
-    only at a mode switch. Unused PDOs are disabled."""
+    only at a mode switch. Unused PDOs are disabled.
+
+    With ``readings_every`` N > 1 the statusword and the position have
+    TxPDO1 to themselves, sent every SYNC, and the other readings follow
+    in TxPDOs of transmission type N (every N-th SYNC, CiA 301): two
+    frames per axis per SYNC plus 1/N per readings PDO."""
     rx_keys: List[ObjectKey] = [CONTROLWORD]
     for cyclic_first in (True, False):
         for mode in modes:
@@ -249,13 +292,19 @@ def compact_maps(od: ObjectDictionary, node_id: int, modes: Sequence[int],
     for k in tx_objects:
         if k not in tx_keys:
             tx_keys.append(k)
+    if not 1 <= readings_every <= 240:
+        raise ValueError("readings_every %r is no synchronous transmission type (1..240)" % (readings_every,))
     out = []
     for keys, rx in ((rx_keys, True), (tx_keys, False)):
-        bins = _pack(od, keys)
+        if rx or readings_every == 1:
+            bins = _pack(od, keys)
+        else:  # the statusword and position alone in the first, the rest packed behind
+            bins = _pack(od, keys[:2]) + (_pack(od, keys[2:]) if len(keys) > 2 else [])
         if len(bins) > PDO_COUNT:
             raise ValueError("%d objects do not fit into %d %sPDOs" % (len(keys), PDO_COUNT, "R" if rx else "T"))
         bases = _RX_COB_BASE if rx else _TX_COB_BASE
-        out.append([MapPlan(n + 1, bases[n] + node_id, n < len(bins), 1, None, not rx,
+        out.append([MapPlan(n + 1, bases[n] + node_id, n < len(bins),
+                            1 if rx or n == 0 else readings_every, None, not rx,
                             tuple(bins[n]) if n < len(bins) else ()) for n in range(PDO_COUNT)])
     return out[0], out[1]
 
@@ -267,8 +316,9 @@ def _timing(maps: List[MapPlan], sync: SyncConfig, rx: bool) -> List[MapPlan]:
     for m in maps:
         if sync.interval_ms > 0:
             trans, timer = (1, None) if not 1 <= m.trans_type <= 240 else (m.trans_type, None)
-        else:
-            trans, timer = 255, None if rx else max(1, int(round(sync.update_ms)))
+        else:  # a type-N TPDO every N cycles
+            every = m.trans_type if 1 <= m.trans_type <= 240 else 1
+            trans, timer = 255, None if rx else max(1, int(round(every * sync.update_ms)))
         out.append(MapPlan(m.number, m.cob_id, m.enabled, trans, timer, m.rtr_allowed, m.entries))
     return out
 
@@ -367,7 +417,7 @@ def plan_node(cfg: NodeConfig, od: ObjectDictionary, sync: SyncConfig, source: s
             raise fail("modes", "pdo_layout compact needs the node's modes (supported: %s), got %s"
                        % (", ".join(str(m) for m in sorted(MODE_TARGETS)), list(cfg.modes)))
         try:
-            rx, tx = compact_maps(od, cfg.node_id, cfg.modes, conversions)
+            rx, tx = compact_maps(od, cfg.node_id, cfg.modes, conversions, cfg.readings_every)
         except ValueError as e:
             raise fail("pdo_layout", str(e)) from None
         return NodePlan(tuple(writes.values()), tuple(_timing(rx, sync, True)), tuple(_timing(tx, sync, False)),

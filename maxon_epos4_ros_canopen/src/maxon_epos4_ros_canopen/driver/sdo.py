@@ -12,7 +12,7 @@ the drive's own refusal:
 
 Both are dropped here. Any other frame that is not the answer (another
 client's on the same channel) still fails the attempt, which the driver
-tries again (``Driver._sdo_transfer``).
+tries again (``ObjectAccess.sdo_transfer``, access.py).
 
 The timeout is judged by when the answer reached the host, not by when the
 notifier read it: a notifier behind on a loaded host may still hold an
@@ -22,13 +22,14 @@ notifier has read past the deadline (``bus.ReceiveClock.unread_before``).
 from __future__ import annotations
 
 import queue
-import time
 from typing import Any, Optional, Tuple
 
+import canopen
 from canopen.sdo import SdoClient
 from canopen.sdo.exceptions import SdoCommunicationError
 
 from ..can_device import MAX_RECEIVE_LAG
+from ..clock import REAL, Clock
 from .bus import ReceiveClock
 
 _ABORT = 0x80
@@ -42,7 +43,42 @@ def no_answer(e: BaseException) -> bool:
     return isinstance(e.__context__, queue.Empty)
 
 
-class GuardedSdoClient(SdoClient):
+class ClockedSdoClient(SdoClient):
+    """canopen's SdoClient waiting for its answers on ``clock``: on a
+    stepped clock the wait runs the clock's events (the drive's answer
+    among them) on the waiting thread, and its timeout is virtual time."""
+
+    def __init__(self, rx_cobid: int, tx_cobid: int, od: Any, clock: Clock = REAL) -> None:
+        self.clock = clock  # before canopen's __init__ makes the response queue
+        super().__init__(rx_cobid, tx_cobid, od)
+
+    @property
+    def responses(self) -> "queue.Queue[Any]":
+        return self._responses
+
+    @responses.setter
+    def responses(self, _fresh: "queue.Queue[Any]") -> None:
+        # canopen makes a new queue.Queue at start and whenever stale
+        # answers wait in it: the clock's kind instead
+        self._responses = self.clock.response_queue()
+
+
+class ClockedRemoteNode(canopen.RemoteNode):
+    """canopen's RemoteNode whose SDO clients wait on ``clock``."""
+
+    def __init__(self, node_id: int, od: Any, clock: Clock = REAL) -> None:
+        self.clock = clock  # before RemoteNode's __init__ adds its SDO channel
+        super().__init__(node_id, od)
+
+    def add_sdo(self, rx_cobid: int, tx_cobid: int) -> ClockedSdoClient:
+        client = ClockedSdoClient(rx_cobid, tx_cobid, self.object_dictionary, self.clock)
+        self.sdo_channels.append(client)
+        if self.has_network():
+            self.network.subscribe(client.tx_cobid, client.on_response)
+        return client
+
+
+class GuardedSdoClient(ClockedSdoClient):
     """An SdoClient that ignores stale frames and aborts of other objects.
 
     ``send_request`` runs in the thread that makes the transfer (under the
@@ -51,8 +87,8 @@ class GuardedSdoClient(SdoClient):
     ``receive_clock``: the notifier's, to judge a timeout by arrival."""
 
     def __init__(self, rx_cobid: int, tx_cobid: int, od: Any,
-                 receive_clock: Optional[ReceiveClock] = None) -> None:
-        super().__init__(rx_cobid, tx_cobid, od)
+                 receive_clock: Optional[ReceiveClock] = None, clock: Clock = REAL) -> None:
+        super().__init__(rx_cobid, tx_cobid, od, clock)
         self._receive_clock = receive_clock
         self._max_lag = MAX_RECEIVE_LAG if receive_clock is None else receive_clock.max_lag
         self._sent_at = 0.0                  # wall clock, as frame timestamps
@@ -68,7 +104,7 @@ class GuardedSdoClient(SdoClient):
             self._multiplexer = bytes(request[1:4])
         elif command not in (0, 3):  # a segment keeps its transfer's object; block transfers are not guarded
             self._multiplexer = None
-        self._sent_at, self._sent_monotonic = time.time(), time.monotonic()
+        self._sent_at, self._sent_monotonic = self.clock.wall(), self.clock.now()
         super().send_request(request)
 
     def read_response(self) -> bytes:
@@ -82,10 +118,10 @@ class GuardedSdoClient(SdoClient):
         answer_by = self._sent_monotonic + timeout
         # Past max_lag the receive clock takes a frame for read on arrival:
         # no backlog is waited on longer than that.
-        give_up = time.monotonic() + self._receive_clock.max_lag
+        give_up = self.clock.now() + self._receive_clock.max_lag
         self.RESPONSE_TIMEOUT = _BACKLOG_POLL
         try:
-            while self._receive_clock.unread_before(answer_by) and time.monotonic() < give_up:
+            while self._receive_clock.unread_before(answer_by) and self.clock.now() < give_up:
                 try:
                     return super().read_response()
                 except SdoCommunicationError as e:
@@ -114,7 +150,7 @@ class GuardedSdoClient(SdoClient):
     def on_response(self, can_id: int, data: Any, timestamp: float) -> None:
         self.frames += 1
         payload = bytes(data)
-        lag = time.time() - timestamp
+        lag = self.clock.wall() - timestamp
         # a timestamp far from the wall clock is another clock's (an
         # adapter's own): it says nothing of when the frame came
         if 0.0 <= lag <= self._max_lag and timestamp < self._sent_at:

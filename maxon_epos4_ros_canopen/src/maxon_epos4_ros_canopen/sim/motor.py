@@ -10,7 +10,7 @@ at the limits and stall against a hard stop.
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Any, Callable, Optional
 
 RPM_TO_RAD_S = 2.0 * math.pi / 60.0
 
@@ -18,6 +18,10 @@ OFF, POSITION, VELOCITY, CURRENT = 0, 1, 2, 3
 # Slower than this the rotor counts as at rest: a drive ends a stop ramp
 # here, and static friction holds an unpowered rotor this slow.
 STANDSTILL_RPM = 1.0
+# An unpowered rotor slows by its bearings' and gearhead's dry friction too,
+# not by viscous friction alone (which would let it creep on for many
+# seconds): a coasting motor with its gearhead stops within about a second.
+COAST_DECELERATION_RPM_S = 1000.0
 
 
 class MotorModel:
@@ -43,26 +47,49 @@ class MotorModel:
         self.current = 0.0
         self.blocked = False
 
+    def configure(self, get: Callable[[int, int, Any], Any]) -> float:
+        """Motor data from the drive's objects (``get(index, sub, default)``):
+        encoder resolution, torque constant, current and speed limits.
+        Returns the rated torque (Nm), 0x6076, else from the nominal current."""
+        resolution = get(0x3000, 5, 0) or 4 * get(0x3010, 1, 0) or 2000
+        self.increments_per_turn = float(resolution)
+        kt = get(0x3001, 5, 0) * 1e-6
+        self.torque_constant = kt if kt > 0 else 0.1
+        limit = get(0x3001, 2, 0) / 1000.0
+        self.current_limit = limit if limit > 0 else 10.0
+        self.max_speed = float(get(0x6080, 0, 0) or 5000)
+        rated = get(0x6076, 0, 0) * 1e-6
+        nominal = get(0x3001, 1, 0) / 1000.0
+        return rated if rated > 0 else self.torque_constant * (nominal or 1.0)
+
     @property
     def inc_per_s_per_rpm(self) -> float:
         return self.increments_per_turn / 60.0
 
     def step(self, dt: float, mode: int, position_ref: float = 0.0, velocity_ref: float = 0.0,
-             current_ref: float = 0.0) -> None:
-        """Advance ``dt`` seconds in sub-steps short enough to stay stable."""
+             current_ref: float = 0.0, acceleration_ref: float = 0.0) -> None:
+        """Advance ``dt`` seconds in sub-steps short enough to stay stable.
+
+        ``position_ref``, ``velocity_ref`` are the demand at the end of
+        ``dt``; ``acceleration_ref`` (rpm/s) is the demand's acceleration
+        over it: the position loop walks the demand's curve back from its
+        end, and the velocity loop takes the acceleration as feed-forward
+        (the EPOS4's acceleration feed-forward), so that a ramp is followed
+        without the lag of the velocity loop."""
         if mode == OFF and abs(self.velocity) < STANDSTILL_RPM:
             self.velocity = self.current = 0.0
             return
         steps = max(1, int(math.ceil(dt / 0.0025)))
         h = dt / steps
         k = self.inc_per_s_per_rpm
-        # position_ref is the demand at the end of dt: walk up to it
-        position_ref -= velocity_ref * k * dt
-        for _ in range(steps):
+        for i in range(steps):
             if mode == POSITION:
-                position_ref += velocity_ref * h * k
-                velocity_cmd = velocity_ref + self.position_gain * (position_ref - self.position) / k
-                self._velocity_loop(velocity_cmd)
+                # the demand at this sub-step's end, on the curve through the step's end
+                back = dt - (i + 1) * h
+                reference = position_ref - (velocity_ref - 0.5 * acceleration_ref * back) * back * k
+                velocity = velocity_ref - acceleration_ref * back
+                velocity_cmd = velocity + self.position_gain * (reference - self.position) / k
+                self._velocity_loop(velocity_cmd, acceleration_ref)
             elif mode == VELOCITY:
                 self._velocity_loop(velocity_ref)
             elif mode == CURRENT:
@@ -76,9 +103,9 @@ class MotorModel:
         if mode == OFF and abs(self.velocity) < STANDSTILL_RPM:
             self.velocity = 0.0  # static friction holds a slow coasting rotor
 
-    def _velocity_loop(self, velocity_cmd: float) -> None:
+    def _velocity_loop(self, velocity_cmd: float, acceleration_ff: float = 0.0) -> None:
         velocity_cmd = max(-self.max_speed, min(self.max_speed, velocity_cmd))
-        accel = (velocity_cmd - self.velocity) * RPM_TO_RAD_S / self.velocity_time_constant
+        accel = ((velocity_cmd - self.velocity) / self.velocity_time_constant + acceleration_ff) * RPM_TO_RAD_S
         torque = self.inertia * accel + self.friction * self.velocity * RPM_TO_RAD_S
         current = torque / self.torque_constant
         self.current = max(-self.current_limit, min(self.current_limit, current))
@@ -86,8 +113,11 @@ class MotorModel:
     def _integrate(self, h: float) -> None:
         torque = self.torque_constant * self.current - self.friction * self.velocity * RPM_TO_RAD_S
         new_velocity = self.velocity + torque / self.inertia * h / RPM_TO_RAD_S
-        if self.current == 0.0 and new_velocity * self.velocity <= 0.0:
-            new_velocity = 0.0  # coasting: friction stops, never reverses
+        if self.current == 0.0:
+            # coasting: dry friction as well, and friction stops, never reverses
+            new_velocity -= math.copysign(min(abs(new_velocity), COAST_DECELERATION_RPM_S * h), new_velocity)
+            if new_velocity * self.velocity <= 0.0:
+                new_velocity = 0.0
         self.position += 0.5 * (self.velocity + new_velocity) * h * self.inc_per_s_per_rpm
         self.velocity = new_velocity
         self.blocked = False

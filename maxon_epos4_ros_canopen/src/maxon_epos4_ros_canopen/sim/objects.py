@@ -1,6 +1,7 @@
 """Object dictionary values of one simulated node, typed by a DCF/EDS.
 
-canopen.import_od parses the file (ParameterValue, $NODEID, BOOLEAN...);
+canopen.import_od parses the file (ParameterValue, $NODEID, BOOLEAN...;
+once per file and node-ID, objects.load_dictionary);
 this module keeps the live values and enforces what an SDO server must check
 (existence, access, length, value range).  canopen's LocalNode does not check
 length and range and has no hook for the drive's own write rules, hence this
@@ -12,6 +13,8 @@ from typing import Any, Callable, Dict, Iterator, Optional, Tuple
 
 import canopen
 from canopen.objectdictionary import ODVariable
+
+from ..objects import load_dictionary
 
 Key = Tuple[int, int]
 
@@ -159,4 +162,4 @@ class ObjectStore:
 
 def load_od(path: str, node_id: int) -> canopen.ObjectDictionary:
     """Read a DCF/EDS for ``node_id`` (resolves $NODEID)."""
-    return canopen.import_od(path, node_id)
+    return load_dictionary(path, node_id)

@@ -4,6 +4,10 @@ One loop receives frames, routes them by COB-ID to the nodes and advances
 all nodes every ``tick`` seconds; SYNC advances them too before TPDOs are
 sampled.  Calls from other threads (fault injection, inspection) go through
 ``call()`` so that only the loop thread ever touches a node or the bus.
+
+On a stepped clock (clock.SteppedClock) there is no loop thread: the clock
+delivers each frame to ``handle`` and runs the tick as a periodic event, on
+the thread that advances its time.
 """
 from __future__ import annotations
 
@@ -13,12 +17,13 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Set, Tuple
+from typing import Any, Callable, Dict, List, Optional, Set, Tuple, Union
 
 import can
 import canopen
 
 from ..can_device import ArrivalClock, max_receive_lag, open_device
+from ..clock import Clock, Task
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
 
@@ -59,19 +64,29 @@ class Simulator:
     """Virtual EPOS4 nodes on ``bus``."""
 
     def __init__(self, bus: can.BusABC, nodes: List[NodeConfig], tick: float = 0.005,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Union[Callable[[], float], Clock] = time.monotonic):
+        """``clock``: a Clock (a stepped one runs the simulator on its
+        events), or a function of the time (the loop thread runs on it)."""
         ids = [n.node_id for n in nodes]
         if len(set(ids)) != len(ids):
             raise ValueError("node ids must be unique: %s" % ids)
         self.bus = bus
         self.tick_period = tick
+        self.scheduler: Optional[Clock] = clock if isinstance(clock, Clock) and clock.stepped else None
+        if isinstance(clock, Clock):
+            wall = clock.wall
+            clock = clock.now
+        else:
+            wall = time.time
         self.clock = clock
         # When the frame being handled reached the host, on ``clock``; the
         # time now whenever no frame waits. The nodes' heartbeat consumers
         # run on it, so frames queued while this loop was starved (a loaded
         # host) count from when they came, as a real drive would see them.
         self.bus_time = clock()
-        self._arrival = ArrivalClock(clock, max_receive_lag(bus))
+        self._clock_read = self.bus_time  # the loop's latest reading of the clock at the end of a pass
+        self._stood_still_for = 0.0  # how long the loop stood still, in all (see _bus_time_now)
+        self._arrival = ArrivalClock(clock, max_receive_lag(bus), wall=wall)
         self.frames_in = 0
         self.frames_out = 0
         # Loop passes that advanced the nodes on the clock (about one per
@@ -89,6 +104,7 @@ class Simulator:
         self._calls: "queue.Queue[Tuple[Callable[[], Any], dict]]" = queue.Queue()
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
+        self._tick_task: Optional[Task] = None
         self._routes: Dict[int, List[VirtualEpos4]] = {}
         self._sync_routes: Dict[int, List[VirtualEpos4]] = {}
         # what each node is routed for now, and the nodes whose COB-IDs may
@@ -185,7 +201,17 @@ class Simulator:
             self._rebuild_routes()
 
     def _bus_time_now(self) -> float:
-        return self.bus_time
+        """The nodes' supervision clock: bus time without the time this
+        loop stood still, which no frame could fill."""
+        return self.bus_time - self._stood_still_for
+
+    def _stood_still(self, late: float) -> bool:
+        """Whether a clock reading ``late`` s after it was expected means
+        the loop stood still; the time counts in ``_stood_still_for``."""
+        if late <= STALL:
+            return False
+        self._stood_still_for += late
+        return True
 
     # -------------------------------------------------------------- loop
     def _receive(self, timeout: float) -> Optional[can.Message]:
@@ -207,15 +233,19 @@ class Simulator:
 
     def step(self, timeout: float) -> None:
         """Receive for up to ``timeout`` s, then tick if due (one loop pass)."""
-        due = self.clock() + max(0.0, timeout)
+        entered = self.clock()
+        due = entered + max(0.0, timeout)
         msg = self._receive(max(0.0, timeout))
         start = time.perf_counter()
         now = self.clock()
-        # Woken much later than asked: this process (or the whole host)
-        # stood still. A frame the bus carried meanwhile may not have
-        # reached the socket yet; a real drive never stalls, so the
-        # heartbeat consumers get one more pass before the clock counts.
-        stalled = now - due > STALL
+        # This process (or the whole host) stood still: woken much later
+        # than asked, or the clock jumped between two readings where no
+        # wait was asked for (since the last pass, while handling a frame).
+        # A frame the bus carried meanwhile may not have reached the socket
+        # yet, and a producer on the same host stood still too; a real
+        # drive never stalls, so the heartbeat consumers' clock leaves that
+        # time out, and bus time waits for the next pass's frames.
+        stalled = self._stood_still(entered - self._clock_read) | self._stood_still(now - due)
         if self._routes_dirty:
             self._rebuild_routes()
         burst = 0
@@ -224,8 +254,10 @@ class Simulator:
             self.handle(msg, now)
             burst += 1
             msg = self._receive(0.0) if burst < 256 else None
+            handled = self.clock()
+            stalled = self._stood_still(handled - now) or stalled
             if msg is not None:
-                now = self.clock()
+                now = handled
         if burst < 256 and not stalled:  # the socket is empty: the loop is up to date
             self.bus_time = max(self.bus_time, now)
         while not self._calls.empty():
@@ -236,18 +268,42 @@ class Simulator:
                 box["error"] = exc
             box["done"].set()
         if now >= self._next_tick:
-            recent = now - 0.5 * self.tick_period  # nodes a SYNC just advanced can wait
-            for node in self.nodes.values():
-                if node.t < recent:
-                    node.tick(now)
+            self._tick(now)
             self._next_tick = max(self._next_tick + self.tick_period, now)
-            self.ticks += 1
         self.busy_time += time.perf_counter() - start
         self.cpu_seconds = time.thread_time() - self._cpu0
+        self._clock_read = self.clock()
+
+    def _tick(self, now: float) -> None:
+        """Advance every node the clock has not advanced lately."""
+        recent = now - 0.5 * self.tick_period  # nodes a SYNC just advanced can wait
+        for node in self.nodes.values():
+            if node.t < recent:
+                node.tick(now)
+        self.ticks += 1
+
+    def _stepped_frame(self, msg: can.Message) -> None:
+        """A frame the stepped clock delivers (stamped with its time)."""
+        now = self.clock()
+        if self._routes_dirty:
+            self._rebuild_routes()
+        self.bus_time = max(self.bus_time, now)
+        try:
+            self.handle(msg, now)
+        except Exception:  # keep serving the other nodes, as the loop does
+            log.exception("virtual EPOS4 frame error")
+
+    def _stepped_tick(self) -> None:
+        now = self.clock()
+        self.bus_time = max(self.bus_time, now)
+        try:
+            self._tick(now)
+        except Exception:
+            log.exception("virtual EPOS4 tick error")
 
     def run(self) -> None:
         """Serve until stop() (blocks)."""
-        self._next_tick = self.clock()
+        self._next_tick = self._clock_read = self.clock()
         self._cpu0 = time.thread_time()
         self._rebuild_routes()
         while not self._stop.is_set():
@@ -257,11 +313,20 @@ class Simulator:
                 log.exception("virtual EPOS4 loop error")
 
     def start(self) -> "Simulator":
+        if self.scheduler is not None:
+            self._rebuild_routes()
+            self.scheduler.add_pump(self.bus, self._stepped_frame, "virtual_epos4")
+            self._tick_task = self.scheduler.periodic("virtual_epos4", self.tick_period, self._stepped_tick)
+            return self
         self._thread = threading.Thread(target=self.run, name="virtual_epos4", daemon=True)
         self._thread.start()
         return self
 
     def stop(self) -> None:
+        if self._tick_task is not None:
+            self._tick_task.stop()
+            self._tick_task = None
+            self.scheduler.remove_pump(self.bus)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
