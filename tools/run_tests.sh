@@ -8,14 +8,15 @@
 #   tools/run_tests.sh --e2e [PATTERN] rostests only (PATTERN: grep -E on the path)
 #   --no-setup                         skip tools/setup.sh (already done)
 #   --jobs N                           end-to-end suite in N user-mode Linux at once
-#                                      (default: E2E_JOBS, else 1; 2 suits an otherwise
-#                                      idle 2-core host)
+#                                      (default: E2E_JOBS, else 2 where the suite runs in
+#                                      user-mode Linux on 2 or more cores, else 1; a
+#                                      native vcan0 is one bus, so natively always 1)
 set -uo pipefail
 REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "$REPO"
 
 run_fast=1; run_e2e=1; pattern=.; do_setup=1
-jobs=${E2E_JOBS:-1}
+jobs=${E2E_JOBS:-}
 while [ $# -gt 0 ]; do
   case "$1" in
     --fast) run_e2e=0 ;;
@@ -163,7 +164,17 @@ if [ $run_e2e = 1 ]; then
   fi
   rm -rf "$results/e2e"
   mkdir -p "$results/e2e"
+  transport=$(tools/vcan_run.sh --which)
+  if [ -z "$jobs" ]; then
+    # user-mode Linux runs one CPU: a second one uses the second core
+    jobs=1
+    [ "$transport" = uml ] && [ "$(nproc)" -ge 2 ] && jobs=2
+  elif [ "$transport" = native ] && [ "$jobs" -gt 1 ]; then
+    echo "end-to-end suite: native vcan0 is one bus for every shard: --jobs $jobs runs as 1"
+    jobs=1
+  fi
   [ "$expected" -gt 0 ] || jobs=1
+  echo "end-to-end suite: $jobs shard(s) on $transport vcan0"
   if [ "$jobs" -le 1 ]; then
     tools/vcan_run.sh tools/e2e_suite.sh "$results/e2e" "$pattern"
     rc=$?

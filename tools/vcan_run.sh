@@ -2,6 +2,7 @@
 # Run a command where a real SocketCAN vcan0 exists.
 #
 #   tools/vcan_run.sh COMMAND [ARGS...]
+#   tools/vcan_run.sh --which          prints the transport it would use: native or uml
 #
 # Natively when this kernel has vcan (vcan0 exists, or `ip link add` works);
 # otherwise inside Debian's user-mode Linux (linux.uml), which boots a 6.1
@@ -32,6 +33,11 @@ if [ "$transport" = auto ]; then
 elif [ "$transport" = native ] && ! native_vcan_ready; then
   echo "vcan0: cannot be brought up natively (VCAN_TRANSPORT=native)" >&2
   exit 3
+fi
+
+if [ "$1" = --which ]; then
+  echo "$transport"
+  exit 0
 fi
 
 if [ "$transport" = native ]; then
