@@ -8,7 +8,7 @@ import itertools
 import math
 import os
 import threading
-from typing import Any, Callable, Deque, List, Optional
+from typing import Any, Callable, Deque, Iterator, List, Optional
 
 import can
 import canopen
@@ -309,32 +309,32 @@ def clock() -> SteppedClock:
     return SteppedClock()
 
 
+def _made_and_closed(build: Callable[..., Any]) -> Iterator[Callable[..., Any]]:
+    """A fixture's body: yields a factory of ``build``'s rigs and closes
+    each rig it made after the test."""
+    made: List[Any] = []
+
+    def make(*args: Any, **kwargs: Any) -> Any:
+        made.append(build(*args, **kwargs))
+        return made[-1]
+    yield make
+    for rig in made:
+        rig.close()
+
+
 @pytest.fixture
 def sim_rig():
     """``sim_rig(nodes, tick=0.002, clock=None)``: a SimRig, closed after
     the test; on a stepped clock of its own unless given one."""
-    rigs = []
-
-    def make(nodes: List[NodeConfig], tick: float = 0.002, clock: Optional[Clock] = None) -> SimRig:
-        rigs.append(SimRig(nodes, tick, clock))
-        return rigs[-1]
-    yield make
-    for r in rigs:
-        r.close()
+    yield from _made_and_closed(SimRig)
 
 
 @pytest.fixture
 def make_driver_rig(request):
     """``make_driver_rig(clock=None)``: a DriverRig (on a stepped clock of
     its own unless given one), closed after the test."""
-    rigs = []
-
-    def make(clock: Optional[Clock] = None) -> DriverRig:
-        rigs.append(DriverRig("drv_%s_%d" % (request.node.name, next(_channels)), clock))
-        return rigs[-1]
-    yield make
-    for r in rigs:
-        r.close()
+    yield from _made_and_closed(
+        lambda clock=None: DriverRig("drv_%s_%d" % (request.node.name, next(_channels)), clock))
 
 
 @pytest.fixture

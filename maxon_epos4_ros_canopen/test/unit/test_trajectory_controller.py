@@ -140,12 +140,19 @@ def test_wrong_joint_is_rejected_and_nothing_moves():
     assert set(driver.commands[J[0]]) == {0.0}
 
 
-def test_fault_mid_trajectory_aborts_and_holds_after_recover():
+def faulted_mid_goal(after_fault: float):
+    """A 2 s goal whose second joint faults 1 s in, then ``after_fault`` s
+    more: started()'s four."""
     driver, ctrl, clock, results = started()
     ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)
     run(driver, ctrl, clock, 1.0)
     driver.joints[J[1]].state = State.FAULT
-    run(driver, ctrl, clock, 0.1)
+    run(driver, ctrl, clock, after_fault)
+    return driver, ctrl, clock, results
+
+
+def test_fault_mid_trajectory_aborts_and_holds_after_recover():
+    driver, ctrl, clock, results = faulted_mid_goal(0.1)
     assert [(r.goal_id, r.code) for r in results] == [("g", tj.PATH_TOLERANCE_VIOLATED)]
     assert "fault" in results[0].message and J[1] in results[0].message
     # the healthy joint decelerates to rest, the faulted one gets nothing
@@ -283,11 +290,7 @@ def test_refused_command_holds_the_targets_sent_last_not_the_readings():
 
 
 def test_after_recover_the_controller_holds_the_drivers_own_target():
-    driver, ctrl, clock, results = started()
-    ctrl.submit("g", J, [P((1.0, 1.0), (), (), 2.0)], 0.0)
-    run(driver, ctrl, clock, 1.0)
-    driver.joints[J[1]].state = State.FAULT
-    run(driver, ctrl, clock, 0.4)
+    driver, ctrl, clock, results = faulted_mid_goal(0.4)
     # recover: the driver enables each drive at its 0x6064 read over SDO and
     # holds it (target_position); the TxPDO reading says something else
     for j, held in zip(J, (0.61, 0.47)):
