@@ -61,18 +61,8 @@ printf '%q ' "$@" > "$rundir/cmd"
 export -p | grep -vE '^declare -x (PWD|OLDPWD|SHLVL|_|TERM|HOSTNAME)=' > "$rundir/env"
 echo "$PWD" > "$rundir/cwd"
 
-# The guest's timers send the master's heartbeat and SYNC, and the simulated
-# drives watch that heartbeat (150 ms in the PVM and PPM examples): on a busy
-# host, the whole guest waiting for a CPU looks to them like a lost master.
-# So the guest runs ahead of the host's ordinary work (UML_NICE, default -10)
-# where this user may raise a priority (root), and unchanged elsewhere.
-raise_priority=()
-uml_nice=${UML_NICE:--10}
-if [ "$(nice -n "$uml_nice" nice 2>/dev/null)" = "$(( $(nice) + uml_nice ))" ]; then
-  raise_priority=(nice -n "$uml_nice")
-fi
 # UML's console is this process's stdout; its own messages go to uml.log.
-"${raise_priority[@]}" linux.uml mem=2G root=/dev/root rootfstype=hostfs rootflags=/ rw quiet loglevel=0 \
+linux.uml mem=2G root=/dev/root rootfstype=hostfs rootflags=/ rw quiet loglevel=0 \
   init="$REPO/tools/uml/init.sh" VCAN_RUNDIR="$rundir" \
   con=null con0=null,fd:1 < /dev/null 2> "$rundir/uml.log" | sed -u "s/\r*$//" | grep --line-buffered -vx "Powering off."
 
