@@ -87,6 +87,40 @@ class ArrivalClock:
         self._taken = read_at
 
 
+class DeliveryDelay:
+    """How late this host's kernel makes a frame readable after stamping it.
+
+    A frame is stamped as it is sent; on a loaded host it may wait in the
+    kernel (a stalled network softirq, a guest kernel left unscheduled)
+    before its reader's socket has it. A socket found empty therefore
+    means only that every frame sent up to ``delay()`` before was read.
+    The evidence: a frame stamped before the moment its socket was last
+    found empty was on its way then, at least for the difference. The
+    estimate is the largest such difference, decaying with ``TAU_S`` so
+    that a host that has become quiet is judged quiet again; it is 0 on a
+    host that never delivered late. One reader thread owns an instance."""
+
+    TAU_S = 10.0
+    MAX_S = 1.0  # a longer wait than this is a stall of the reader, which it accounts itself
+
+    def __init__(self) -> None:
+        self._delay = 0.0
+        self._at = 0.0
+
+    def delay(self, now: float) -> float:
+        """The estimate at ``now``."""
+        if self._delay <= 0.0:
+            return 0.0
+        return self._delay * math.exp(-max(0.0, now - self._at) / self.TAU_S)
+
+    def frame(self, arrival: float, empty_at: float, now: float) -> None:
+        """A frame that reached the host at ``arrival`` was read at ``now``;
+        its socket was last found empty at ``empty_at``."""
+        late = min(empty_at - arrival, self.MAX_S)
+        if late > 0.0 and late > self.delay(now):
+            self._delay, self._at = late, now
+
+
 # Receive buffer asked for on a SocketCAN socket: about a second of a full
 # 1 Mbit/s bus (some 8,000 frames, each about 1 KB of kernel bookkeeping).
 # The kernel's default holds a few hundred frames: a process the host left

@@ -22,7 +22,7 @@ from typing import Any, Callable, Dict, List, Optional, Set, Tuple, Union
 import can
 import canopen
 
-from ..can_device import ArrivalClock, max_receive_lag, open_device
+from ..can_device import ArrivalClock, DeliveryDelay, max_receive_lag, open_device
 from ..clock import Clock, Task
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
@@ -85,8 +85,14 @@ class Simulator:
         # host) count from when they came, as a real drive would see them.
         self.bus_time = clock()
         self._clock_read = self.bus_time  # the loop's latest reading of the clock at the end of a pass
+        self._next_tick: Optional[float] = None  # when the loop ticks next (set when it starts)
         self._stood_still_for = 0.0  # how long the loop stood still, in all (see _bus_time_now)
         self._arrival = ArrivalClock(clock, max_receive_lag(bus), wall=wall)
+        # when the socket was last found empty, and how late the kernel
+        # makes frames readable: an empty socket proves bus time only up
+        # to that delay before it was found empty
+        self._empty_at = self.bus_time
+        self._delivery = DeliveryDelay()
         self.frames_in = 0
         self.frames_out = 0
         # Loop passes that advanced the nodes on the clock (about one per
@@ -249,17 +255,24 @@ class Simulator:
         if self._routes_dirty:
             self._rebuild_routes()
         burst = 0
+        empty_at = now  # when the socket was found empty (this pass's receive found nothing)
         while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
-            self.bus_time = max(self.bus_time, self._arrival.arrival(msg.timestamp, now))
+            arrival = self._arrival.arrival(msg.timestamp, now)
+            self._delivery.frame(arrival, self._empty_at, now)
+            self.bus_time = max(self.bus_time, arrival)
             self.handle(msg, now)
             burst += 1
             msg = self._receive(0.0) if burst < 256 else None
-            handled = self.clock()
+            handled = empty_at = self.clock()
             stalled = self._stood_still(handled - now) or stalled
             if msg is not None:
                 now = handled
-        if burst < 256 and not stalled:  # the socket is empty: the loop is up to date
-            self.bus_time = max(self.bus_time, now)
+        if burst < 256:
+            self._empty_at = empty_at
+            if not stalled:
+                # the socket is empty: every frame sent up to the kernel's
+                # delivery delay before is read, and the loop is up to date
+                self.bus_time = max(self.bus_time, empty_at - self._delivery.delay(empty_at))
         while not self._calls.empty():
             fn, box = self._calls.get_nowait()
             try:
@@ -301,12 +314,16 @@ class Simulator:
         except Exception:
             log.exception("virtual EPOS4 tick error")
 
-    def run(self) -> None:
-        """Serve until stop() (blocks)."""
-        self._next_tick = self._clock_read = self.clock()
-        self._cpu0 = time.thread_time()
-        self._rebuild_routes()
-        while not self._stop.is_set():
+    def run(self, passes: Optional[int] = None) -> None:
+        """Serve until stop() (blocks); with ``passes``, that many passes of
+        the loop (a test that scripts the bus and the clock runs it so)."""
+        if self._next_tick is None:
+            self._next_tick = self._clock_read = self.clock()
+            self._cpu0 = time.thread_time()
+            self._rebuild_routes()
+        done = 0
+        while not self._stop.is_set() and (passes is None or done < passes):
+            done += 1
             try:
                 self.step(self._next_tick - self.clock())
             except Exception:  # keep serving the other nodes
