@@ -746,13 +746,20 @@ def test_a_receive_thread_falling_behind_is_not_a_lost_heartbeat(real_driver_rig
     assert rig.until(lambda: d.snapshot().cycle >= after, 10.0)
     # The simulator's thread sends the heartbeats, and on a loaded host it
     # can itself stand still: then the bus really was silent, and the
-    # driver is right to say so. The send times on the bus are the truth.
+    # driver must say so, however late it read the heartbeat that ended the
+    # silence. The send times on the bus are the truth (the driver's own
+    # reading of them may differ by its wall-clock offset: 5 ms either way
+    # of the limit is not judged).
     sent = [m.timestamp for _, m in rig.recorder.log[start:] if m.arbitration_id == 0x701 and len(m.data) == 1]
     gap = max(b - a for a, b in zip(sent, sent[1:]))
-    if gap > 1.5 * 0.2 + 2 * SYNC_MS / 1000.0:
+    limit = 1.5 * 0.2 + 2 * SYNC_MS / 1000.0
+    if gap > limit + 0.005:
         assert d.joints[J1].error is not None and "heartbeat lost" in d.joints[J1].error, (
             "the drive's heartbeats were %.0f ms apart on the bus, and the driver saw nothing" % (gap * 1000))
         print("the simulated drive itself was silent for %.0f ms: the driver called it lost" % (gap * 1000))
+        return
+    if gap > limit - 0.005:
+        print("the simulated drive was silent for %.0f ms, at the limit: not judged" % (gap * 1000))
         return
     assert d.joints[J1].error is None, "%s; the heartbeats were at most %.0f ms apart on the bus" % (
         d.joints[J1].error, gap * 1000)

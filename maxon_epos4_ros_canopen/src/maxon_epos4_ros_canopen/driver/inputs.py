@@ -34,6 +34,11 @@ class Inputs:
         self.error_register = 0
         self.heartbeat_ms = 0
         self.last_heartbeat = 0.0
+        # the longest silence between two heartbeats read since the watchdog
+        # (re)started, by their arrival: a drive silent past its heartbeat
+        # time is lost even when the driver read its next heartbeat before
+        # any later frame (a notifier behind on a loaded host)
+        self.heartbeat_gap = 0.0
         self.rebooted = False           # a boot-up came while the axis was ready
         self.status_seen = 0.0          # monotonic time of the last statusword TPDO
         self.status_seen_cycle = 0      # the cycle that took it in
@@ -87,12 +92,14 @@ class Inputs:
     def restart(self, now: float) -> None:
         """The heartbeat and TxPDO watchdogs start again at ``now``."""
         self.last_heartbeat = self.status_seen = now
+        self.heartbeat_gap = 0.0
 
     def set_heartbeat(self, ms: int, now: float) -> None:
         """The node's heartbeat time (0x1017) is ``ms`` now; the consumer
         counts from ``now``."""
         self.heartbeat_ms = ms
         self.last_heartbeat = now
+        self.heartbeat_gap = 0.0
 
     def take(self, receiver: TpdoReceiver, now: float, cycle: int,
              wall_offset: float) -> List[Optional[Tuple[Any, ...]]]:
@@ -169,7 +176,7 @@ class Inputs:
         if self.heartbeat_ms > 0 and self._heartbeat_missing(now, period, reception):
             self.nmt_state = "LOST"
             return "heartbeat lost: nothing for %.0f ms (0x1017 = %d ms)" % (
-                (now - self.last_heartbeat) * 1000, self.heartbeat_ms)
+                max(now - self.last_heartbeat, self.heartbeat_gap) * 1000, self.heartbeat_ms)
         if self.nmt_state in ("STOPPED", "PRE-OPERATIONAL"):
             return "node left OPERATIONAL (heartbeat says %s)" % self.nmt_state
         if cycle - self.status_seen_cycle >= pdo_cycles and now - self.status_seen > pdo_timeout:
@@ -181,12 +188,15 @@ class Inputs:
         return None
 
     def _heartbeat_missing(self, now: float, period: float, reception: Optional[Tuple[float, float]]) -> bool:
-        """Nothing from the drive for 1.5 x 0x1017 + 2 cycles. Missing only
+        """Nothing from the drive for 1.5 x 0x1017 + 2 cycles: between two
+        heartbeats read (by when they arrived), or since the last one. Missing only
         once the driver has read a frame that arrived after the heartbeat
         was due (frames are read in the order they came), or has read
         nothing at all for as long: a heartbeat still waiting unread behind
         a stalled notifier is not a silent drive."""
         limit = 1.5 * self.heartbeat_ms / 1000.0 + 2 * period
+        if self.heartbeat_gap > limit:
+            return True
         if now - self.last_heartbeat <= limit:
             return False
         return reception is None or reception[1] - self.last_heartbeat > limit or now - reception[0] > limit
@@ -207,6 +217,8 @@ class Inputs:
         if name is None:
             self.counters.add("undefined_nmt_state")
             return
+        if self.heartbeat_ms > 0:
+            self.heartbeat_gap = max(self.heartbeat_gap, now - self.last_heartbeat)
         self.last_heartbeat = now
         self.nmt_state = name
         if byte == 0 and ready:
