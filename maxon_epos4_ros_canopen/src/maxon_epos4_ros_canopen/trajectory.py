@@ -52,8 +52,15 @@ __all__ = [
     "SUCCESSFUL", "INVALID_GOAL", "INVALID_JOINTS", "OLD_HEADER_TIMESTAMP",
     "PATH_TOLERANCE_VIOLATED", "GOAL_TOLERANCE_VIOLATED",
     "TrajectoryError", "TrajectoryPoint", "Sample", "Tolerances", "tolerances_from_constraints",
-    "Outcome", "CycleOutput", "TrajectoryExecutor", "csp_readiness_problem",
+    "Outcome", "CycleOutput", "TrajectoryExecutor", "csp_readiness_problem", "STALE_READING_CYCLES",
 ]
+
+# Past a goal's deadline, the updates that wait for a reading taken after it
+# before judging the newest reading there is: a cycle starved for a while
+# first sees the readings from before the starvation, and the next few see
+# fresh ones; readings that stay old are a lost drive, which its watchdogs
+# report, and the goal must still end.
+STALE_READING_CYCLES = 50
 
 
 @dataclass(frozen=True)
@@ -82,6 +89,7 @@ class _Goal:
     prepared: PreparedGoal
     tolerances: Tolerances
     trajectory: Optional[Trajectory] = None  # once the cycle took it up
+    cycles_past_deadline: int = 0  # updates after end + goal_time with no reading taken after it
 
 
 class TrajectoryExecutor:
@@ -240,8 +248,14 @@ class TrajectoryExecutor:
         return current.sample(t)
 
     def update(self, now: float, actual_positions: Sequence[float],
-               actual_velocities: Optional[Sequence[float]] = None) -> CycleOutput:
-        """One control cycle: the desired state at ``now`` and, when a goal ends, its outcome."""
+               actual_velocities: Optional[Sequence[float]] = None,
+               readings_at: Optional[float] = None) -> CycleOutput:
+        """One control cycle: the desired state at ``now`` and, when a goal ends, its outcome.
+
+        ``readings_at``: when the oldest of the actual values was taken (on
+        ``now``'s clock; None: at ``now``). The goal is judged only on
+        readings taken after the trajectory's end, and failed only on
+        readings taken after its deadline (end + goal_time)."""
         if self._pending is not None:
             self._take_up(now)
         traj = self._current()
@@ -259,16 +273,39 @@ class TrajectoryExecutor:
                     outcome = self._path_violation(now, sent_before or desired, problem)
                     desired = self._current().sample(now)
             else:
-                problem = self._violation(goal.tolerances.goal, err_p, err_v, actual_velocities, at_goal=True)
-                if not problem:
-                    outcome = self._end_goal(Outcome(goal.goal_id, SUCCESSFUL, "goal reached"))
-                elif goal.tolerances.goal_time > 0.0 and now > traj.end_time + goal.tolerances.goal_time:
-                    outcome = self._end_goal(Outcome(
-                        goal.goal_id, GOAL_TOLERANCE_VIOLATED,
-                        "goal tolerance not met %.3f s after the trajectory's end: %s"
-                        % (now - traj.end_time, problem)))
+                outcome = self._judge_goal(goal, traj, now, err_p, err_v, actual_velocities, readings_at)
         self.last_desired = desired
         return CycleOutput(desired, err_p, err_v, outcome)
+
+    def _judge_goal(self, goal: _Goal, traj: Trajectory, now: float, err_p: Sequence[float],
+                    err_v: Sequence[float], actual_velocities: Optional[Sequence[float]],
+                    readings_at: Optional[float]) -> Optional[Outcome]:
+        """At or after the trajectory's end: the goal's outcome, or None
+        while it may still be met or the readings are older than what they
+        would have to prove."""
+        goal_time = goal.tolerances.goal_time
+        deadline = traj.end_time + goal_time
+        late = goal_time > 0.0 and now > deadline
+        taken = now if readings_at is None else readings_at
+        # readings that never come fresh must not leave the goal open for ever
+        forced = goal.cycles_past_deadline >= STALE_READING_CYCLES
+        if late:
+            goal.cycles_past_deadline += 1
+        problem = self._violation(goal.tolerances.goal, err_p, err_v, actual_velocities, at_goal=True)
+        if not problem:
+            if taken >= traj.end_time or forced:
+                return self._end_goal(Outcome(goal.goal_id, SUCCESSFUL, "goal reached"))
+            return None
+        if not late or not (taken > deadline or forced):
+            return None
+        if taken > deadline:
+            age = "joint states read %.0f ms before" % ((now - taken) * 1000.0)
+        else:
+            age = "no reading after the deadline; the newest was read %.0f ms before" % ((now - taken) * 1000.0)
+        return self._end_goal(Outcome(
+            goal.goal_id, GOAL_TOLERANCE_VIOLATED,
+            "goal tolerance not met %.3f s after the trajectory's end (%s): %s"
+            % (now - traj.end_time, age, problem)))
 
     def _path_violation(self, now: float, sent: Sample, problem: str) -> Optional[Outcome]:
         """Abort on readings outside the path tolerance: decelerate from the

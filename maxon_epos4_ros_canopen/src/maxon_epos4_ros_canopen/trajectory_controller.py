@@ -258,7 +258,10 @@ class JointTrajectoryController(Controller):
             self.executor.reset(now, held)
             self._sent = list(held)
             self._not_ready = ""
-        out = self.executor.update(now, positions, velocities)
+        # the goal is judged on readings no older than what they must prove:
+        # after a starved stretch the first readings taken in can predate it
+        age = max(_motion_age(joint) for joint in joints)
+        out = self.executor.update(now, positions, velocities, now - age)
         self.last_cycle = out
         outcomes.append(out.outcome)
         for j, (name, target) in enumerate(zip(self.joints, out.desired.positions)):
@@ -273,6 +276,16 @@ class JointTrajectoryController(Controller):
             return
         for listener in list(self.on_outcome):
             listener(outcome)
+
+
+def _motion_age(joint: Any) -> float:
+    """The age (s) of a joint's position and velocity readings; infinite
+    while one has not arrived, 0.0 for a joint that does not tell."""
+    motion_age = getattr(joint, "motion_age", None)
+    if motion_age is None:
+        return 0.0
+    age = float(motion_age())
+    return age if not math.isnan(age) else math.inf
 
 
 def _joint_problem(name: str, joint: Any) -> str:

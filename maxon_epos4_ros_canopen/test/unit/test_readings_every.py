@@ -179,6 +179,15 @@ def test_snapshot_carries_the_age_of_each_reading():
             assert snap.readings[VEL] == 10 * (n - since)  # the value the age belongs to
     snap = h.sync(19, 0)
     assert snap.describe_ages() == "6041,6064: 2; 606C: 42"
+    assert snap.motion_age() == pytest.approx(0.042)  # the older of position and velocity
+
+
+def test_motion_age_is_unknown_until_position_and_velocity_arrived():
+    h = AgeHarness()
+    assert math.isnan(h.sync(1, 7).motion_age())    # no velocity frame yet
+    for n in range(2, 6):
+        snap = h.sync(n, 10 * n)
+    assert snap.motion_age() == pytest.approx(0.002)  # both arrived this SYNC
 
 
 def test_csp_example_on_the_bus_and_in_diagnostics():

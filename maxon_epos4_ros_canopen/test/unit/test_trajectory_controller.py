@@ -106,6 +106,28 @@ def run(driver, ctrl, clock, seconds):
         driver.follow()
 
 
+def test_a_starved_cycle_does_not_fail_a_goal_on_readings_from_before_the_starvation():
+    driver, ctrl, clock, results = started()
+    ctrl.submit("g", J, [P((0.5, -0.5), (), (), 1.0)], 0.0)
+    run(driver, ctrl, clock, 0.9)
+    stale = {j: driver.joints[j].position for j in J}
+    assert abs(stale[J[0]] - 0.5) > 0.01
+    # 2.5 s without a cycle; the drives reached the goal meanwhile, but the
+    # first cycle after takes in readings 2.5 s old
+    taken_at = clock.t
+    clock.t += 2.5
+    for j in J:
+        driver.joints[j].motion_age = lambda: clock.t - taken_at
+    ctrl.cycle(driver)
+    assert results == []
+    for j, end in zip(J, (0.5, -0.5)):
+        driver.joints[j].position = end
+        driver.joints[j].motion_age = lambda: 0.002
+    clock.t += DT
+    ctrl.cycle(driver)
+    assert [r.code for r in results] == [tj.SUCCESSFUL], results
+
+
 def test_start_switches_to_csp_and_checks_interpolation_period():
     driver, ctrl, _, _ = started()
     assert driver.modes == [(tuple(J), 8)]

@@ -14,6 +14,7 @@ from ..config_schema import NodeConfig
 from ..limits import JointLimits
 from ..objects import ObjectKey
 from ..units import object_variable_name
+from .modes import POSITION_ACTUAL, VELOCITY_ACTUAL
 from .plan import NodePlan
 
 
@@ -85,6 +86,17 @@ class AxisSnapshot(NamedTuple):
         """For diagnostics: "6041,6064: 2; 606C: 41" (ms per TPDO's objects)."""
         return "; ".join("%s: %s" % (",".join(str(k) for k in keys), "-" if math.isnan(age) else "%.0f" % (age * 1000))
                          for keys, age in zip(self.tpdo_keys, self.tpdo_ages()))
+
+    def motion_age(self) -> float:
+        """The age (s) of the older of the position and velocity actual
+        values (0x6064, 0x606C) when the cycle took them in: what a judge
+        of the joint's motion must allow for. NaN while one of them has not
+        arrived; 0.0 when no TPDO carries either."""
+        ages = [age for keys, age in zip(self.tpdo_keys, self.tpdo_ages())
+                if POSITION_ACTUAL in keys or VELOCITY_ACTUAL in keys]
+        if any(math.isnan(age) for age in ages):
+            return math.nan
+        return max(ages, default=0.0)
 
     @property
     def reading_ages(self) -> Dict[ObjectKey, float]:
