@@ -142,6 +142,40 @@ def test_commands_are_saturated_to_the_joint_limits(rig):
     assert d.status()[0]["frames_ignored"] == "none"
 
 
+def csp_targets(frames):
+    """The 0x607A values of RxPDO 2 (0x301, 0x607A first) in ``frames``."""
+    return [struct.unpack_from("<i", data)[0] for data in frames if len(data) >= 4]
+
+
+def test_a_csp_target_moves_no_faster_than_the_joints_velocity_limit(rig):
+    # ros_canopen saturates a position command to the joint's velocity limit
+    # over the period; in CSP the drive must reach each target within one
+    # SYNC, so a step past limit x period would drive it past the limit
+    d = rig.start(defaults={"pos_to_device": "pos*1000", "pos_from_device": "obj6064/1000"})
+    d.set_limits(J1, JointLimits(lower=-1.0, upper=1.0, velocity=0.5))  # 5 inc per 10 ms SYNC
+    assert d.init().success and d.switch_mode([J1], 8).success
+    start = rig.read(0x6064)
+    rig.drain()
+    r = d.set_command(J1, "position", start / 1000.0 + 0.3)
+    assert r.success, r.message
+    assert rig.until(lambda: rig.read(0x607A) == start + 300)
+    sent = [start] + csp_targets(rig.sent(0x301))
+    steps = [b - a for a, b in zip(sent, sent[1:])]
+    assert max(abs(s) for s in steps) <= 5, steps
+    assert len([s for s in steps if s]) >= 60  # 300 inc at 5 per SYNC
+    assert d.status()[0]["commands_limited"] == "none"  # within the position limits: not clipped
+    # a halt and recover start the ramp again from where the drive stands
+    assert d.set_command(J1, "position", -0.9).success
+    rig.had_the_chance(5)
+    assert d.halt().success and d.recover().success
+    stood = rig.read(0x6064)
+    rig.drain()
+    assert d.set_command(J1, "position", stood / 1000.0 + 0.1).success
+    assert rig.until(lambda: rig.read(0x607A) == stood + 100)
+    sent = [stood] + csp_targets(rig.sent(0x301))
+    assert max(abs(b - a) for a, b in zip(sent, sent[1:])) <= 5, sent
+
+
 def test_halt_is_a_quick_stop_by_default_and_recover_does_not_jump(rig):
     d = ppm_ready(rig)
     assert d.set_command(J1, "position", 400000).success

@@ -100,10 +100,16 @@ class Axis:
                  "_seen_state", "mode_display", "env", "error", "target_state", "_confirm_after", "_requested_at",
                  "quick_stop_hold", "held_state", "fault_reset", "active_mode", "halted", "homing", "ready",
                  "attached", "command_kind", "command_value", "command_raw", "target_position", "last_refusal",
-                 "_modes", "_settle", "_last_cw", "_sw_at", "_mode_at", "_pos_at", "_env_at", "_display_mapped")
+                 "_modes", "_settle", "_last_cw", "_sw_at", "_mode_at", "_pos_at", "_env_at", "_display_mapped",
+                 "target_period")
 
-    def __init__(self, cfg: NodeConfig, od: Any, plan: NodePlan, limits: JointLimits) -> None:
+    def __init__(self, cfg: NodeConfig, od: Any, plan: NodePlan, limits: JointLimits,
+                 target_period: float = 0.0) -> None:
+        """``target_period``: seconds from one cyclic target to the next as
+        the drive applies them (the SYNC period; 0: unknown, and a CSP
+        target is not limited by the joint's velocity)."""
         self.cfg = cfg
+        self.target_period = target_period
         self.name = cfg.name
         self.node_id = cfg.node_id
         self.key = cfg.key
@@ -475,9 +481,9 @@ class Axis:
         self.command_kind = checked.kind
         self.command_value = checked.value
         self.command_raw = checked.raw
-        if checked.kind == "position":
-            self.target_position = checked.value
         mode = self._modes.get(self.active_mode)
+        if checked.kind == "position" and not (mode is not None and mode.cyclic and self._step_limited()):
+            self.target_position = checked.value
         if mode is not None:
             mode.command(self, checked.raw)
         return ok("clipped to the joint limits (%s)" % self.limits.describe()) if checked.clipped else OK
@@ -541,7 +547,9 @@ class Axis:
             kind = mode.command_kind
             if mode.cyclic:
                 if self.command_kind == kind and not self.halted:
-                    if self.converter.dynamic[kind]:
+                    if kind == "position" and self.target_position != self.command_value:
+                        self._step_position()
+                    elif self.converter.dynamic[kind]:
                         raw, err = self.converter.convert(kind, self.command_value, self.env)
                         if err:
                             # An object the conversion reads changed: stop where
@@ -560,6 +568,36 @@ class Axis:
         self._last_cw = cw
         self._settle = False
         self._send(send, cw, cyclic_rx, target_kind, self.command_raw)
+
+    def _step_limited(self) -> bool:
+        """Whether a CSP target moves toward a command in steps (the joint
+        has a velocity limit, the period is known, and so is the target
+        the drive holds now)."""
+        return (self.limits.velocity is not None and self.target_period > 0.0
+                and math.isfinite(self.target_position))
+
+    def _step_position(self) -> None:
+        """This SYNC's CSP target: the command, or as far toward it as the
+        joint's velocity limit allows in one period. ros_canopen saturates
+        a position command to that limit over the period too; in CSP the
+        drive must reach each target within one SYNC, so a larger step
+        (a command that jumps, a cycle a loaded host held up) would drive
+        the joint faster than its limit."""
+        goal = self.command_value
+        here = self.target_position
+        velocity = self.limits.velocity
+        if velocity is not None and self.target_period > 0.0 and math.isfinite(here):
+            step = velocity * self.target_period
+            if goal - here > step:
+                goal = here + step
+            elif here - goal > step:
+                goal = here - step
+        raw, err = self.converter.convert("position", goal, self.env)
+        if err:
+            self.set_error(err)  # stop where we are rather than send garbage
+            return
+        self.target_position = goal
+        self.command_raw = raw
 
     # --------------------------------------------------------- snapshot
     def snapshot(self) -> AxisSnapshot:

@@ -95,11 +95,14 @@ class Lifecycle:
         enabled = self._enable_all(names, {name: prepared[name][0] for name in names}, modes)
         try:
             axes = []
+            sync = self.config.sync
+            # a drive applies cyclic targets at SYNC (at the cycle without one)
+            target_period = (sync.interval_ms if sync.interval_ms > 0 else sync.update_ms) / 1000.0
             now = self._clock.now()
             for name in names:
                 node = self._nodes[name]
                 binding, statusword = enabled[name]
-                axis = Axis(node.cfg, node.od, node.plan, cycle.limits[name])
+                axis = Axis(node.cfg, node.od, node.plan, cycle.limits[name], target_period)
                 axis.active_mode = modes[name]
                 axis.attach(binding, cycle.cycle_no, now)
                 axis.enabled_over_sdo(statusword)

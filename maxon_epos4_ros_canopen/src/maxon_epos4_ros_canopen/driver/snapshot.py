@@ -54,8 +54,10 @@ class AxisSnapshot(NamedTuple):
     status_cycle: int              # the cycle that last took in a statusword TPDO
     stamp: float                   # wall clock (time.time()) when the newest TPDO taken in arrived; 0: none
     # The position target (ROS units) the driver sends in CSP: the last
-    # position command applied, or the 0x6064 read over SDO that it holds
-    # (enable, recover, mode switch). Never a TxPDO reading; NaN when unknown.
+    # position command applied (in CSP, as far toward it as the joint's
+    # velocity limit allowed so far), or the 0x6064 read over SDO that it
+    # holds (enable, recover, mode switch). Never a TxPDO reading; NaN when
+    # unknown.
     target_position: float = math.nan
     tpdo_arrived: Tuple[float, ...] = ()   # per TPDO: when its latest frame arrived (monotonic; NaN: none yet)
     read_at: float = math.nan              # when the cycle took in these readings (same clock)
