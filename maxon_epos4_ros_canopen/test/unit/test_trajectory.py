@@ -269,16 +269,23 @@ def test_goal_reached_late_within_goal_time_succeeds():
     assert next(t for t, o in samples if o.outcome) == pytest.approx(1.19, abs=0.02)
 
 
+def goal_running_until(t: float) -> TrajectoryExecutor:
+    """A goal to (1, 1) at 1 s, goal tolerance 0.01 within goal_time 0.5 s,
+    followed exactly until ``t``."""
+    tol = tolerances_from_constraints(J, {"goal_time": 0.5, J[0]: {"goal": 0.01}, J[1]: {"goal": 0.01}})
+    ex = executor(tolerances=tol)
+    ex.submit("g", J, [P((1.0, 1.0), (), (), 1.0)], 0.0, 0.0)
+    assert outcomes(run(ex, 0.0, t)) == []
+    return ex
+
+
 def test_a_starved_cycle_judges_the_goal_on_readings_that_arrived_after_the_deadline():
     # The cycle ran last 0.2 s before the trajectory's end, then not for
     # 2.5 s: its first readings after that are still the ones from before
     # the end (the notifier that takes frames in was starved too). The
     # joint stood on its goal meanwhile; only a reading taken after the
     # deadline may say it did not.
-    tol = tolerances_from_constraints(J, {"goal_time": 0.5, J[0]: {"goal": 0.01}, J[1]: {"goal": 0.01}})
-    ex = executor(tolerances=tol)
-    ex.submit("g", J, [P((1.0, 1.0), (), (), 1.0)], 0.0, 0.0)
-    assert outcomes(run(ex, 0.0, 0.8)) == []
+    ex = goal_running_until(0.8)
     stale = ex.query_state(0.8).positions
     assert abs(stale[0] - 1.0) > 0.05
     o = ex.update(3.3, stale, None, readings_at=0.8)
@@ -288,10 +295,7 @@ def test_a_starved_cycle_judges_the_goal_on_readings_that_arrived_after_the_dead
 
 
 def test_a_reading_from_before_the_end_is_no_success():
-    tol = tolerances_from_constraints(J, {"goal_time": 0.5, J[0]: {"goal": 0.01}, J[1]: {"goal": 0.01}})
-    ex = executor(tolerances=tol)
-    ex.submit("g", J, [P((1.0, 1.0), (), (), 1.0)], 0.0, 0.0)
-    assert outcomes(run(ex, 0.0, 0.99)) == []
+    ex = goal_running_until(0.99)
     # a reading at 0.995 stands within 0.01 of the goal, but the trajectory
     # had not ended then: the joint may go on past it
     o = ex.update(1.2, (0.999, 0.999), None, readings_at=0.995)
@@ -301,10 +305,7 @@ def test_a_reading_from_before_the_end_is_no_success():
 
 
 def test_a_fresh_reading_off_the_goal_after_the_deadline_fails_it_and_says_how_old_it_was():
-    tol = tolerances_from_constraints(J, {"goal_time": 0.5, J[0]: {"goal": 0.01}, J[1]: {"goal": 0.01}})
-    ex = executor(tolerances=tol)
-    ex.submit("g", J, [P((1.0, 1.0), (), (), 1.0)], 0.0, 0.0)
-    assert outcomes(run(ex, 0.0, 0.99)) == []
+    ex = goal_running_until(0.99)
     assert ex.update(1.6, (1.0, 0.9), None, readings_at=1.45).outcome is None  # read before the deadline
     o = ex.update(1.61, (1.0, 0.9), None, readings_at=1.58)
     assert o.outcome is not None and o.outcome.code == tj.GOAL_TOLERANCE_VIOLATED
@@ -312,10 +313,7 @@ def test_a_fresh_reading_off_the_goal_after_the_deadline_fails_it_and_says_how_o
 
 
 def test_readings_that_never_come_after_the_deadline_are_judged_after_stale_cycles():
-    tol = tolerances_from_constraints(J, {"goal_time": 0.5, J[0]: {"goal": 0.01}, J[1]: {"goal": 0.01}})
-    ex = executor(tolerances=tol)
-    ex.submit("g", J, [P((1.0, 1.0), (), (), 1.0)], 0.0, 0.0)
-    assert outcomes(run(ex, 0.0, 0.99)) == []
+    ex = goal_running_until(0.99)
     ends = []
     for k in range(tj.STALE_READING_CYCLES + 1):
         o = ex.update(1.51 + k * DT, (1.0, 0.9), None, readings_at=0.9)
