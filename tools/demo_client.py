@@ -30,7 +30,7 @@ def shell(cmd: str) -> str:
 def main() -> int:
     start = time.monotonic()
     deadline = start + 180.0
-    print("[demo] roslaunch is starting the ROS master, the driver node and the virtual EPOS4; waiting for "
+    print("[demo] roslaunch is starting the driver node and the virtual EPOS4 beside the ROS master; waiting for "
           "the driver's services (about 20 s under user-mode Linux)", flush=True)
     said = ""
     while True:
