@@ -584,10 +584,9 @@ class Axis:
         (a command that jumps, a cycle a loaded host held up) would drive
         the joint faster than its limit."""
         goal = self.command_value
-        here = self.target_position
-        velocity = self.limits.velocity
-        if velocity is not None and self.target_period > 0.0 and math.isfinite(here):
-            step = velocity * self.target_period
+        if self._step_limited():
+            here = self.target_position
+            step = self.limits.velocity * self.target_period
             if goal - here > step:
                 goal = here + step
             elif here - goal > step:
