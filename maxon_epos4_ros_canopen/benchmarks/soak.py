@@ -12,13 +12,18 @@ position for every axis (a slow sine). First half: CSP only. Second half:
 ``halt`` then ``recover`` every ``--every`` s (and back to CSP).
 
 Every ``--every`` s the process's RSS (VmRSS; the simulator is in this
-process too) is sampled. A listener takes every SYNC's send time (the
-virtual bus stamps a frame when it is sent) and lists each gap over 3
-periods with its time, next to what was going on then: a halt/recover
-under way, a garbage collection (gc.callbacks), the driver's overruns.
-Prints the RSS samples, the RSS growth per hour in each phase (least
-squares over the samples after the first minute of the phase), the gaps,
-and the object types whose count grew most over the halt/recover phase.
+process too) is sampled. The driver's bus takes every SYNC's send time
+(monotonic) and lists each gap over 3 periods with its time and its
+cause: at every SYNC it also takes what the kernel counts (GapWitness):
+each thread's time on a CPU and waiting for one
+(/proc/self/task/*/schedstat), the time the hypervisor ran other guests
+on this machine's CPUs (steal, /proc/stat) and the wall clock's offset
+from the monotonic one. A gap is explained from the difference between
+the SYNCs around it, next to a halt/recover under way and a garbage
+collection (gc.callbacks). Prints the RSS samples, the RSS growth
+per hour in each phase (least squares over the samples after the first
+minute of the phase), the gaps with their causes, and the object types
+whose count grew most over the halt/recover phase.
 """
 from __future__ import annotations
 
@@ -32,7 +37,7 @@ import threading
 import time
 from array import array
 from collections import Counter
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, NamedTuple, Optional, Tuple
 
 import can
 
@@ -67,51 +72,167 @@ def slope_kb_per_h(samples: List[Tuple[float, int]]) -> float:
     return 3600.0 * sum((t - mt) * (r - mr) for t, r in samples) / var if var else math.nan
 
 
-class SyncListener:
-    """SYNC periods on the channel, from each SYNC's send time. What it
-    keeps is allocated up front (the longest period of each second, a
-    bounded list of gaps), so the recording does not add to the RSS it
-    measures: a list of every SYNC's time would grow by some 11 MB/h."""
+CYCLE_THREAD = "epos4_driver_cycle"  # the name the driver's clock gives the cycle thread
+_NS = 1e-9
+
+
+class Sample(NamedTuple):
+    """What the kernel had counted at one SYNC (see GapWitness)."""
+    steal_s: float                         # every CPU's steal time, summed
+    wall_offset_s: float                   # time.time() - time.monotonic()
+    threads: Dict[int, Tuple[int, int]]    # native thread id -> (ns on a CPU, ns runnable waiting for one)
+
+
+class GapWitness:
+    """Takes a Sample at every SYNC and explains a gap from the two around
+    it. Linux counts, per thread, the time it ran and the time it was
+    runnable but waited for a CPU (schedstat); what is left of a gap is
+    time the thread was blocked (a lock, the GIL, a sleep). The hypervisor's
+    steal time says the whole virtual machine did not run. The wall
+    clock's offset tells a step of the clock the frames are stamped with.
+
+    The files stay open and are read with pread, so a sample costs a few
+    system calls, not an open and close per thread."""
+
+    def __init__(self) -> None:
+        self._fds: Dict[int, int] = {}
+        self._stat = os.open("/proc/stat", os.O_RDONLY)
+        self._hz = float(os.sysconf("SC_CLK_TCK"))
+        self.names: Dict[int, str] = {}
+
+    def sample(self) -> Sample:
+        threads = {}
+        for name in os.listdir("/proc/self/task"):
+            tid = int(name)
+            fd = self._fds.get(tid)
+            try:
+                if fd is None:
+                    fd = self._fds[tid] = os.open("/proc/self/task/%d/schedstat" % tid, os.O_RDONLY)
+                on_cpu, waiting, _ = os.pread(fd, 128, 0).split()
+            except (OSError, ValueError):  # the thread ended meanwhile
+                if fd is not None:
+                    os.close(self._fds.pop(tid))
+                continue
+            threads[tid] = (int(on_cpu), int(waiting))
+        for tid in [t for t in self._fds if t not in threads]:
+            os.close(self._fds.pop(tid))
+        cpu = os.pread(self._stat, 256, 0).split(b"\n", 1)[0].split()
+        steal = int(cpu[8]) / self._hz if len(cpu) > 8 else 0.0
+        return Sample(steal, time.time() - time.monotonic(), threads)
+
+    def name_threads(self) -> None:
+        """Thread names by native id (threads that started since the last call)."""
+        for t in threading.enumerate():
+            if t.native_id is not None:
+                self.names[t.native_id] = t.name
+
+    def explain(self, before: Sample, after: Sample, gap_s: float, period_s: float) -> Dict:
+        """The causes of one gap: what the cycle thread did in it, and what
+        took the time it did not get."""
+        late = gap_s - period_s
+        per_thread = {}
+        for tid, (on_cpu, waiting) in after.threads.items():
+            on0, wait0 = before.threads.get(tid, (0, 0))
+            per_thread[tid] = ((on_cpu - on0) * _NS, (waiting - wait0) * _NS)
+        cycle = [tid for tid, name in self.names.items() if name == CYCLE_THREAD and tid in per_thread]
+        ran, waited = per_thread[cycle[0]] if cycle else (0.0, 0.0)
+        steal = after.steal_s - before.steal_s
+        step = after.wall_offset_s - before.wall_offset_s
+        causes = []
+        if steal >= late / 2:
+            causes.append("hypervisor steal %.0f ms" % (steal * 1e3))
+        if waited >= late / 2:
+            causes.append("cycle thread runnable, waiting for a CPU %.0f ms" % (waited * 1e3))
+        if ran >= late / 2:
+            causes.append("cycle thread ran %.0f ms" % (ran * 1e3))
+        if not causes:
+            # The cycle thread was blocked: on the GIL or a lock, held by a
+            # thread that ran or, runnable, waited for a CPU meanwhile.
+            others = sorted(((on + wait, on, wait, tid) for tid, (on, wait) in per_thread.items()
+                             if tid not in cycle), reverse=True)[:2]
+            causes.append("cycle thread blocked %.0f ms; meanwhile %s; steal %.0f ms" % (
+                (gap_s - ran - waited) * 1e3, ", ".join("%s ran %.0f ms, waited for a CPU %.0f ms" % (
+                    self.names.get(tid, str(tid)), on * 1e3, wait * 1e3) for _, on, wait, tid in others
+                    if _ > 0) or "no thread of this process ran or waited for a CPU", steal * 1e3))
+        return {"cause": "; ".join(causes), "cycle_ran_ms": ran * 1e3, "cycle_waited_ms": waited * 1e3,
+                "steal_ms": steal * 1e3, "clock_step_ms": step * 1e3}
+
+    def close(self) -> None:
+        for fd in self._fds.values():
+            os.close(fd)
+        self._fds.clear()
+        os.close(self._stat)
+
+
+class SyncRecorder(can.BusABC):
+    """The driver's bus, recording each SYNC as it is sent: the thread that
+    sends it (the cycle) takes the time and a GapWitness sample right
+    there, so the two samples around a gap bracket exactly that gap (a
+    listener thread would take them whenever it got the GIL after the
+    frames). Periods are monotonic; a wall clock that steps (the frames'
+    stamps are wall time) is counted apart, as it moves no drive.
+
+    What it keeps is allocated up front (the longest period of each
+    second, a bounded list of gaps), so the recording does not add to the
+    RSS it measures: a list of every SYNC's time would grow by some
+    11 MB/h."""
 
     MAX_GAPS = 10000
+    MAX_EXPLAINED = 1000  # gaps explained in full (a dict each); the rest are counted
 
     def __init__(self, channel: str, seconds: float) -> None:
-        self.bus = can.Bus(interface="virtual", channel=channel)
-        self.t0 = 0.0                     # wall-clock start; 0: not recording yet
+        self.inner = can.Bus(interface="virtual", channel=channel)
+        self.channel_info = self.inner.channel_info
+        self.t0 = 0.0                     # monotonic start; 0: not recording yet
         self.count = 0
         self.longest = array("d", bytes(8 * (int(seconds) + 60)))   # per second since t0
         self.gaps = array("d", bytes(16 * self.MAX_GAPS))          # (end time, period) pairs
         self.n_gaps = 0
-        self._last = 0.0
-        self._run = True
-        self._thread = threading.Thread(target=self._loop, daemon=True)
-        self._thread.start()
+        self.wall_steps = 0               # SYNC periods whose wall time differed by over 1 ms
+        self.witness = GapWitness()
+        self.causes: List[Dict] = []      # GapWitness.explain of the first MAX_EXPLAINED gaps
+        self._last: Optional[Sample] = None
+        self._last_t = 0.0
+        super().__init__(channel=channel)
 
-    def _loop(self) -> None:
-        while self._run:
-            msg = self.bus.recv(0.1)
-            if msg is None or msg.arbitration_id != SYNC_ID or not self.t0 or msg.timestamp < self.t0:
-                continue
-            t = msg.timestamp
-            if self._last:
-                period = t - self._last
-                k = int(t - self.t0)
-                if k < len(self.longest) and period > self.longest[k]:
-                    self.longest[k] = period
-                if period > GAP_PERIODS * PERIOD and self.n_gaps < self.MAX_GAPS:
-                    self.gaps[2 * self.n_gaps], self.gaps[2 * self.n_gaps + 1] = t - self.t0, period
-                    self.n_gaps += 1
-            self._last = t
-            self.count += 1
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        if msg.arbitration_id == SYNC_ID and self.t0:
+            self._record()
+        self.inner.send(msg, timeout)
 
-    def close(self) -> None:
-        self._run = False
-        self._thread.join(2.0)
-        self.bus.shutdown()
+    def _record(self) -> None:
+        witness = self.witness
+        t = time.monotonic()
+        now = witness.sample()
+        if any(tid not in witness.names for tid in now.threads):
+            witness.name_threads()
+        last = self._last
+        if last is not None:
+            period = t - self._last_t
+            k = int(t - self.t0)
+            if k < len(self.longest) and period > self.longest[k]:
+                self.longest[k] = period
+            if abs(now.wall_offset_s - last.wall_offset_s) > 0.001:
+                self.wall_steps += 1
+            if period > GAP_PERIODS * PERIOD and self.n_gaps < self.MAX_GAPS:
+                self.gaps[2 * self.n_gaps], self.gaps[2 * self.n_gaps + 1] = t - self.t0, period
+                self.n_gaps += 1
+                if len(self.causes) < self.MAX_EXPLAINED:
+                    self.causes.append(witness.explain(last, now, period, PERIOD))
+        self._last, self._last_t = now, t
+        self.count += 1
+
+    def _recv_internal(self, timeout: Optional[float]):
+        return self.inner.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self.inner.shutdown()
+        self.witness.close()
+        super().shutdown()
 
 
 class GcTimes:
-    """(start, end) wall-clock times of each garbage collection."""
+    """(start, end) monotonic times of each garbage collection."""
 
     def __init__(self) -> None:
         self.spans: List[Tuple[float, float, int]] = []
@@ -120,12 +241,24 @@ class GcTimes:
 
     def _cb(self, phase: str, info: Dict) -> None:
         if phase == "start":
-            self._start = time.time()
+            self._start = time.monotonic()
         else:
-            self.spans.append((self._start, time.time(), info.get("generation", -1)))
+            self.spans.append((self._start, time.monotonic(), info.get("generation", -1)))
 
     def close(self) -> None:
         gc.callbacks.remove(self._cb)
+
+
+GAP_KINDS = (("hypervisor steal", "hypervisor steal"),
+             ("waiting for a CPU", "cycle thread waited for a CPU"), ("cycle thread ran", "cycle thread ran"),
+             ("blocked", "cycle thread blocked (GIL or lock)"), ("halt+recover", "during halt+recover"),
+             ("gc gen", "during a garbage collection"))
+
+
+def gap_kinds(gap: Dict) -> List[str]:
+    """The kinds of cause a gap's explanation names (GAP_KINDS)."""
+    text = " ".join(gap["during"])
+    return [kind for marker, kind in GAP_KINDS if marker in text]
 
 
 def type_counts() -> Counter:
@@ -155,9 +288,9 @@ def main() -> int:
                      # the drives watch the master's heartbeat for 2 s (a loaded host
                      # may hold the heartbeat thread back longer than 150 ms)
                      "dcf_overlay": {"1016sub1": "0x007F07D0", "2000": "$NODEID+0"}}}
-    driver = Driver(load_config(params, "soak"))
+    recorder = SyncRecorder(channel, args.seconds)
+    driver = Driver(load_config(params, "soak"), bus=recorder)
     names = list(driver.joints)
-    listener = SyncListener(channel, args.seconds)
     gcs = GcTimes()
     busy: List[Tuple[float, float, str]] = []   # (start, end, what) of halt/recover pairs
     samples = int(args.seconds / args.every) + 2
@@ -176,8 +309,7 @@ def main() -> int:
         if not r.success:
             print("switch to CSP failed: %s" % r.message)
             return 1
-        t0_mono, t0_wall = time.monotonic(), time.time()
-        listener.t0 = t0_wall
+        t0_mono = recorder.t0 = time.monotonic()
 
         def trajectory(d) -> None:
             target = 0.5 * math.sin(0.5 * (time.monotonic() - t0_mono))
@@ -201,7 +333,7 @@ def main() -> int:
                 n_rss += 1
                 next_sample += args.every
                 if phase == 2:
-                    start = time.time()
+                    start = time.monotonic()
                     for step in ("halt", "recover"):
                         res = getattr(driver, step)()
                         if not res.success:
@@ -209,28 +341,32 @@ def main() -> int:
                     res = driver.switch_mode(names, 8)
                     if not res.success:
                         failures.append("%.0f s switch to CSP: %s" % (now, res.message))
-                    busy.append((start, time.time(), "halt+recover"))
+                    busy.append((start, time.monotonic(), "halt+recover"))
             time.sleep(max(0.0, min(1.0, next_sample - (time.monotonic() - t0_mono))))
         counts_after = type_counts() if counts_before is not None else None
     finally:
         gcs.close()
         driver.shutdown()
         driver.close()
-        listener.close()
+        recorder.shutdown()
         sim.stop()
         sim_bus.shutdown()
 
     rss = [(rss_at[i], rss_kb_[i], rss_phase[i]) for i in range(n_rss)]
-    periods = [(p, k + 1.0) for k, p in enumerate(listener.longest) if p > 0]  # longest of each second
+    periods = [(p, k + 1.0) for k, p in enumerate(recorder.longest) if p > 0]  # longest of each second
     gaps = []
-    for i in range(listener.n_gaps):
-        at, p = listener.gaps[2 * i], listener.gaps[2 * i + 1]
-        start, end = t0_wall + at - p, t0_wall + at
+    for i in range(recorder.n_gaps):
+        at, p = recorder.gaps[2 * i], recorder.gaps[2 * i + 1]
+        start, end = t0_mono + at - p, t0_mono + at
         why = [w for s, e, w in busy if s <= end and e >= start]
         why += ["gc gen %d %.0f ms" % (g, (e - s) * 1000) for s, e, g in gcs.spans if s <= end and e >= start]
-        gaps.append({"at_s": at, "gap_ms": p * 1000, "during": why})
+        gap = {"at_s": at, "gap_ms": p * 1000, "during": why}
+        if i < len(recorder.causes):
+            gap.update(recorder.causes[i])
+            why.append(gap["cause"])
+        gaps.append(gap)
     print("\nsoak: %d axes, %.0f s (%.0f s CSP, then %.0f s with halt+recover every %.0f s), %d SYNCs, "
-          "host %s" % (args.axes, args.seconds, half, args.seconds - half, args.every, listener.count,
+          "host %s" % (args.axes, args.seconds, half, args.seconds - half, args.every, recorder.count,
                        os.uname().release))
     growth = {}
     for ph in (1, 2):
@@ -241,9 +377,13 @@ def main() -> int:
             print("phase %d RSS: %d kB at %.0f s, %d kB at %.0f s, growth %.0f kB/h (least squares after its "
                   "first minute; target <= 100 kB/h)" % (ph, samples[0][1], samples[0][0], samples[-1][1],
                                                           samples[-1][0], growth[ph]))
-    explained = [g for g in gaps if g["during"]]
-    print("SYNC gaps over %d periods (%.0f ms): %d, %d of them during a halt+recover or a garbage collection"
-          % (GAP_PERIODS, GAP_PERIODS * PERIOD * 1000, len(gaps), len(explained)))
+    print("SYNC gaps over %d periods (%.0f ms): %d, %d of them with a cause the kernel counted"
+          % (GAP_PERIODS, GAP_PERIODS * PERIOD * 1000, len(gaps), sum("cause" in g for g in gaps)))
+    print("wall clock steps over 1 ms between two SYNCs (no gap on the bus: periods are monotonic): %d"
+          % recorder.wall_steps)
+    kinds = Counter(kind for g in gaps for kind in gap_kinds(g))
+    if kinds:
+        print("  by cause (a gap may have several): %s" % ", ".join("%s %d" % kv for kv in kinds.most_common()))
     for phase_name, lo, hi in (("CSP", 0.0, half), ("halt+recover", half, math.inf)):
         in_phase = [g for g in gaps if lo <= g["at_s"] < hi]
         print("  %s phase: %d gaps, %d after its first 10 s" % (phase_name, len(in_phase),
@@ -268,7 +408,7 @@ def main() -> int:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"rss": rss, "gaps": gaps, "growth_kb_per_h": growth, "failures": failures,
-                       "syncs": listener.count}, f)
+                       "syncs": recorder.count}, f)
     return 0
 
 
