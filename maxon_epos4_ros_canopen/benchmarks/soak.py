@@ -152,8 +152,8 @@ class GapWitness:
                              if tid not in cycle), reverse=True)[:2]
             causes.append("cycle thread blocked %.0f ms; meanwhile %s; steal %.0f ms" % (
                 (gap_s - ran - waited) * 1e3, ", ".join("%s ran %.0f ms, waited for a CPU %.0f ms" % (
-                    self.names.get(tid, str(tid)), on * 1e3, wait * 1e3) for _, on, wait, tid in others
-                    if _ > 0) or "no thread of this process ran or waited for a CPU", steal * 1e3))
+                    self.names.get(tid, str(tid)), on * 1e3, wait * 1e3) for total, on, wait, tid in others
+                    if total > 0) or "no thread of this process ran or waited for a CPU", steal * 1e3))
         return {"cause": "; ".join(causes), "cycle_ran_ms": ran * 1e3, "cycle_waited_ms": waited * 1e3,
                 "steal_ms": steal * 1e3, "clock_step_ms": step * 1e3}
 
