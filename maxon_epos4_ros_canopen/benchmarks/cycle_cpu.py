@@ -13,11 +13,16 @@ time, CPU per cycle and per axis, PDO frames per axis per SYNC, peak RSS.
 With --init-only: the init time alone (init, then close; no cycle is
 measured: at 10 ms, 127 axes' cycles are more than this process's CPU).
 
-What is charged: the process's CPU time minus the simulator thread's (which
-also pays python-can's virtual-bus copies of the frames it sends). After
-init the master's bus is a sink for PDOs: they are counted and dropped
-(only SYNC reaches the simulator), so the copies of the master's frames are
-not charged either; TxPDOs still arrive and are decoded by the master.
+What is charged: the master process's CPU time. The virtual EPOS4 runs in
+a process of its own (forked at start), joined to the master by a
+socketpair that carries CAN frames (PipeBus): in the master's process its
+32 DCF drives (motion, 3 TxPDOs each per SYNC) and the driver shared one
+GIL, more than 10 ms of CPU per 10 ms SYNC, so the simulator fell behind,
+its queue of frames grew without bound and every wait on a drive's answer
+(the mode switch's 0x6061, an SDO) took longer each time until one timed
+out. After init the master's bus is a sink for PDOs: they are counted and
+dropped (only SYNC reaches the simulator); TxPDOs still arrive and are
+decoded by the master.
 CSP at 10 ms SYNC, a new target position every cycle for every axis.
 The driver is used through its public API only (Driver(config, bus=...),
 init, switch_mode, add_cycle_callback, set_command, close).
@@ -41,12 +46,16 @@ import argparse
 import collections
 import json
 import math
+import multiprocessing
 import os
 import resource
+import select
+import socket
+import struct
 import sys
 import threading
 import time
-from typing import Callable
+from typing import Callable, Optional, Tuple
 
 import can
 import canopen
@@ -63,13 +72,132 @@ UNITS = {"pos_to_device": "rint(pos*3200/(2*pi))", "pos_from_device": "obj6064*2
          "eff_to_device": "rint(eff)", "eff_from_device": "0"}
 
 
-class SinkBus(can.BusABC):
-    """The master's view of a virtual channel. ``sinking``: PDOs the master
-    sends are counted and dropped (SYNC and everything else still go out);
-    received PDOs are counted."""
+class PipeBus(can.BusABC):
+    """One end of a socketpair carrying CAN frames to the other process.
 
-    def __init__(self, channel: str) -> None:
-        self.inner = can.Bus(interface="virtual", channel=channel)
+    A frame is stamped with the sender's wall clock, as python-can's virtual
+    bus stamps it, so a frame left waiting in the socket shows how long it
+    waited. Sending blocks while the peer's buffer is full (it is reading:
+    each process has a thread that receives), for at most ``timeout``; a
+    frame that still finds no room is lost, as on a full SocketCAN queue."""
+
+    FRAME = struct.Struct("<dIBB8s")  # stamp, COB-ID, DLC, flags, data
+    EXTENDED, REMOTE, ERROR = 1, 2, 4
+
+    def __init__(self, sock: socket.socket, channel: str = "pipe") -> None:
+        self.sock = sock
+        self.channel_info = channel
+        for opt in (socket.SO_SNDBUF, socket.SO_RCVBUF):  # a SYNC's burst of TxPDOs fits
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, opt, 1 << 22)
+            except OSError:
+                pass
+        # non-blocking: a receive finds no frame at once or waits in poll,
+        # a send waits only for the peer to make room
+        sock.setblocking(False)
+        self._poll = select.poll()
+        self._poll.register(sock, select.POLLIN)
+        super().__init__(channel=channel)
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        flags = ((self.EXTENDED if msg.is_extended_id else 0) | (self.REMOTE if msg.is_remote_frame else 0)
+                 | (self.ERROR if msg.is_error_frame else 0))
+        frame = self.FRAME.pack(time.time(), msg.arbitration_id, msg.dlc, flags, bytes(msg.data))
+        try:
+            self.sock.send(frame)
+            return
+        except BlockingIOError:
+            pass
+        except OSError as e:
+            raise can.CanOperationError("pipe send: %s" % e) from None
+        # the peer's buffer is full: wait for room (select: the receiving
+        # thread owns the poll object)
+        _, room, _ = select.select([], [self.sock], [], 1.0 if timeout is None else timeout)
+        try:
+            if room:
+                self.sock.send(frame)
+                return
+        except OSError as e:
+            raise can.CanOperationError("pipe send: %s" % e) from None
+        raise can.CanOperationError("pipe send: no room for %g s" % (1.0 if timeout is None else timeout))
+
+    def _recv_internal(self, timeout: Optional[float]) -> Tuple[Optional[can.Message], bool]:
+        # a frame already waiting is read at once: one system call, not two
+        try:
+            frame = self.sock.recv(self.FRAME.size, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            if not self._poll.poll(None if timeout is None else max(0.0, timeout) * 1000.0):
+                return None, False
+            try:
+                frame = self.sock.recv(self.FRAME.size, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                return None, False
+            except OSError as e:
+                raise can.CanOperationError("pipe receive: %s" % e) from None
+        except OSError as e:
+            raise can.CanOperationError("pipe receive: %s" % e) from None
+        if len(frame) != self.FRAME.size:
+            raise can.CanOperationError("pipe closed")
+        stamp, cob, dlc, flags, data = self.FRAME.unpack(frame)
+        return can.Message(timestamp=stamp, arbitration_id=cob, is_extended_id=bool(flags & self.EXTENDED),
+                           is_remote_frame=bool(flags & self.REMOTE), is_error_frame=bool(flags & self.ERROR),
+                           dlc=dlc, data=data[:dlc] if not flags & self.REMOTE else None, check=False), False
+
+    def shutdown(self) -> None:
+        self.sock.close()
+        super().shutdown()
+
+
+def _serve_simulator(sock: socket.socket, axes: int, ready, stop) -> None:
+    """The simulator process: ``axes`` virtual EPOS4 on ``sock`` until ``stop`` is set."""
+    bus = PipeBus(sock, "simulator")
+    sim = Simulator(bus, [NodeConfig(i, DCF) for i in range(1, axes + 1)], tick=0.005).start()
+    ready.set()
+    stop.wait()
+    sim.stop()
+    bus.shutdown()
+
+
+class SimulatorProcess:
+    """The virtual EPOS4 in a process of its own (its own GIL: see the
+    module text), forked before this process starts any thread."""
+
+    def __init__(self, axes: int) -> None:
+        ctx = multiprocessing.get_context("fork")
+        mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self.stop_event = ctx.Event()
+        ready = ctx.Event()
+        self.process = ctx.Process(target=_serve_simulator, args=(theirs, axes, ready, self.stop_event),
+                                   name="virtual_epos4", daemon=True)
+        self.process.start()
+        theirs.close()
+        self.sock = mine
+        # the drives answer from the start, as they did in this process:
+        # loading 32 dictionaries takes longer than an SDO timeout
+        if not ready.wait(60.0):
+            self.stop()
+            raise RuntimeError("the simulator process did not start")
+
+    def cpu_seconds(self) -> float:
+        """CPU time the simulator process used so far (Linux /proc)."""
+        with open("/proc/%d/stat" % self.process.pid) as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.process.join(5.0)
+        if self.process.is_alive():
+            self.process.kill()
+
+
+class SinkBus(can.BusABC):
+    """The master's end of the simulator's pipe. ``sinking``: PDOs the
+    master sends are counted and dropped (SYNC and everything else still go
+    out); received PDOs are counted."""
+
+    def __init__(self, inner: can.BusABC, channel: str) -> None:
+        self.inner = inner
         self.channel = channel
         self.sinking = False
         self.sent = collections.Counter()
@@ -215,14 +343,15 @@ LEAN_FRAMES = {
 }
 
 
-def _lean_setup(channel: str, axes: int, layout: str) -> None:
+def _lean_setup(bus: can.BusABC, axes: int, layout: str) -> None:
     """The drives in CSP, Operation Enabled, OPERATIONAL, with the layout's
-    PDO mapping (written through canopen; setup is not measured)."""
+    PDO mapping (written through canopen on the loop's bus; setup is not
+    measured)."""
     from maxon_epos4_ros_canopen.config import load_config
     from maxon_epos4_ros_canopen.driver.plan import plan_node
 
-    network = canopen.Network()
-    network.connect(interface="virtual", channel=channel)
+    network = canopen.Network(bus)
+    network.connect()
     try:
         for i in range(1, axes + 1):
             node = canopen.RemoteNode(i, DCF)
@@ -236,14 +365,15 @@ def _lean_setup(channel: str, axes: int, layout: str) -> None:
                 node.sdo["Controlword"].raw = cw
             node.nmt.state = "OPERATIONAL"
     finally:
-        network.disconnect()
+        # not disconnect(): that shuts the bus the loop goes on with
+        network.notifier.stop()
 
 
 def run_lean(bus: SinkBus, axes: int, layout: str) -> dict:
     """The lean loop on python-can alone (see the module text)."""
     import struct
     t0 = time.perf_counter()
-    _lean_setup(bus.channel, axes, layout)
+    _lean_setup(bus, axes, layout)
     init_s = time.perf_counter() - t0
     frames = LEAN_FRAMES[layout]
     rx = [[can.Message(arbitration_id=base + i, is_extended_id=False, data=bytes(struct.calcsize(fmt)))
@@ -368,10 +498,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.ratio:
         return ratio(args.axes, args.rounds, args.seconds, args.plot)
-    channel = "cycle_cpu_%d" % os.getpid()
-    sim_bus = can.Bus(interface="virtual", channel=channel)
-    sim = Simulator(sim_bus, [NodeConfig(i, DCF) for i in range(1, args.axes + 1)], tick=0.005).start()
-    bus = SinkBus(channel)
+    sim = SimulatorProcess(args.axes)
+    bus = SinkBus(PipeBus(sim.sock, "master"), "cycle_cpu_%d" % os.getpid())
     out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl != "baseline" else "dcf"}
     run = None
     try:
@@ -383,6 +511,7 @@ def main() -> int:
             # (that is what --init-only is for), and would hang the run.
             out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
             print(json.dumps(out), flush=True)
+            sim.process.kill()  # os._exit skips multiprocessing's clean-up
             os._exit(0)
         else:
             if args.impl == "driver":
@@ -394,14 +523,14 @@ def main() -> int:
             time.sleep(0.5)  # settle: mode switch done, targets moving
             bus.sinking = True
             threads0 = thread_cpu()
-            cpu0, sim0, wall0 = time.process_time(), sim.cpu_seconds, time.monotonic()
+            cpu0, sim0, wall0 = time.process_time(), sim.cpu_seconds(), time.monotonic()
             sync0 = bus.sent[SYNC_ID]
             time.sleep(args.seconds)
-            cpu, sim_cpu, wall = time.process_time() - cpu0, sim.cpu_seconds - sim0, time.monotonic() - wall0
+            cpu, sim_cpu, wall = time.process_time() - cpu0, sim.cpu_seconds() - sim0, time.monotonic() - wall0
             threads1 = thread_cpu()
             syncs = bus.sent[SYNC_ID] - sync0
             cycles = max(1, syncs)
-            master_cpu = max(0.0, cpu - sim_cpu)
+            master_cpu = cpu  # the simulator's CPU is its own process's
             out.update({
                 "ok": True, "init_s": run["init_s"], "cycles": syncs, "wall_s": wall,
                 "cpu_per_cycle_us": master_cpu / cycles * 1e6,
@@ -411,7 +540,7 @@ def main() -> int:
                 "tx_pdos_per_axis": sum(bus.received.values()) / cycles / args.axes,
             })
             out["pdos_per_axis"] = out["rx_pdos_per_axis"] + out["tx_pdos_per_axis"]
-            # per thread, us per axis per cycle (the simulator's is what is subtracted above)
+            # per thread of the master, us per axis per cycle (the simulator runs in its own process)
             out["threads_per_axis_us"] = {thread_label(name): (threads1[name] - t0) / cycles / args.axes * 1e6
                                           for name, t0 in threads0.items() if name in threads1}
     except Exception as e:  # a run that cannot start is a row in the table, not a crash
@@ -421,7 +550,6 @@ def main() -> int:
             run["stop"]()
         sim.stop()
         bus.shutdown()
-        sim_bus.shutdown()
     out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(json.dumps(out))
     return 0 if out["ok"] else 1
