@@ -75,6 +75,10 @@ UNITS = {"pos_to_device": "rint(pos*3200/(2*pi))", "pos_from_device": "obj6064*2
 class PipeBus(can.BusABC):
     """One end of a socketpair carrying CAN frames to the other process.
 
+    Written here because python-can has no bus between two processes of one
+    host without a kernel CAN interface (vcan is absent on hosts like this
+    one) or a network (udp_multicast): a socketpair is the least of both.
+
     A frame is stamped with the sender's wall clock, as python-can's virtual
     bus stamps it, so a frame left waiting in the socket shows how long it
     waited. Sending blocks while the peer's buffer is full (it is reading:
