@@ -270,14 +270,20 @@ def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True) -> dic
     if not r.success:
         driver.close()
         raise RuntimeError("switch to CSP: %s" % r.message)
+    driver.add_cycle_callback(sine_targets(names))
+    return {"init_s": init_s, "stop": driver.close}
+
+
+def sine_targets(names) -> Callable:
+    """A cycle callback: a new position target for every joint every cycle,
+    a slow sine from the moment it is made."""
     t_start = time.monotonic()
 
     def trajectory(d) -> None:
         target = 0.2 * math.sin(time.monotonic() - t_start)
         for name in names:
             d.set_command(name, "position", target)
-    driver.add_cycle_callback(trajectory)
-    return {"init_s": init_s, "stop": driver.close}
+    return trajectory
 
 
 def run_every_period(cycle: Callable[[], None], on_close: Callable[[], None] = lambda: None) -> Callable[[], None]:

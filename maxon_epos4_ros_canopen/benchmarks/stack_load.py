@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import queue
 import subprocess
@@ -36,13 +35,7 @@ import threading
 import time
 from typing import Dict, Tuple
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-SRC = os.path.join(HERE, "..", "src")
-DCF = os.path.join(HERE, "..", "config", "epos4_node1.dcf")
-PERIOD = 0.010
-UNITS = {"pos_to_device": "rint(pos*3200/(2*pi))", "pos_from_device": "obj6064*2*pi/3200",
-         "vel_to_device": "rint(vel)", "vel_from_device": "obj606C",
-         "eff_to_device": "rint(eff)", "eff_from_device": "0"}
+from cycle_cpu import DCF, HERE, PERIOD, UNITS, sine_targets, thread_label  # this folder's
 
 
 def floor(rounds: int = 2000) -> Dict[str, float]:
@@ -98,7 +91,6 @@ def capacity(seconds: float) -> float:
 def run_driver(channel: str, axes: int) -> None:
     """The driver process: init, CSP, a moving target every cycle, until killed.
     Prints one JSON line with its threads' names by native id once moving."""
-    sys.path.insert(0, SRC)
     from maxon_epos4_ros_canopen.config import load_config
     from maxon_epos4_ros_canopen.driver import Driver
 
@@ -116,16 +108,8 @@ def run_driver(channel: str, axes: int) -> None:
             print(json.dumps({"ok": False, "error": "%s: %s" % (step, result.message)}), flush=True)
             driver.close()
             return
-    t_start = time.monotonic()
-
-    def trajectory(d) -> None:
-        target = 0.2 * math.sin(time.monotonic() - t_start)
-        for name in names:
-            d.set_command(name, "position", target)
-    driver.add_cycle_callback(trajectory)
-    # python-can's notifier names itself after the bus: "notifier" is enough here
-    threads = {str(t.native_id): "notifier" if t.name.startswith("Notifier") else t.name
-               for t in threading.enumerate() if t.native_id is not None}
+    driver.add_cycle_callback(sine_targets(names))
+    threads = {str(t.native_id): thread_label(t.name) for t in threading.enumerate() if t.native_id is not None}
     print(json.dumps({"ok": True, "threads": threads}), flush=True)
     threading.Event().wait()
 
