@@ -15,12 +15,9 @@ measured: at 10 ms, 127 axes' cycles are more than this process's CPU).
 
 What is charged: the master process's CPU time. The virtual EPOS4 runs in
 a process of its own (forked at start), joined to the master by a
-socketpair that carries CAN frames (PipeBus): in the master's process its
-32 DCF drives (motion, 3 TxPDOs each per SYNC) and the driver shared one
-GIL, more than 10 ms of CPU per 10 ms SYNC, so the simulator fell behind,
-its queue of frames grew without bound and every wait on a drive's answer
-(the mode switch's 0x6061, an SDO) took longer each time until one timed
-out. After init the master's bus is a sink for PDOs: they are counted and
+socketpair that carries CAN frames (PipeBus): sharing the master's GIL, 32
+DCF drives and the driver need more than 10 ms of CPU per 10 ms SYNC, and
+the simulated drives would fall ever further behind. After init the master's bus is a sink for PDOs: they are counted and
 dropped (only SYNC reaches the simulator); TxPDOs still arrive and are
 decoded by the master.
 CSP at 10 ms SYNC, a new target position every cycle for every axis.
@@ -75,9 +72,9 @@ UNITS = {"pos_to_device": "rint(pos*3200/(2*pi))", "pos_from_device": "obj6064*2
 class PipeBus(can.BusABC):
     """One end of a socketpair carrying CAN frames to the other process.
 
-    Written here because python-can has no bus between two processes of one
-    host without a kernel CAN interface (vcan is absent on hosts like this
-    one) or a network (udp_multicast): a socketpair is the least of both.
+    Written here because python-can's in-process virtual bus does not reach
+    another process, and vcan is absent on hosts like this one: a local
+    socketpair joins the two and never leaves the machine.
 
     A frame is stamped with the sender's wall clock, as python-can's virtual
     bus stamps it, so a frame left waiting in the socket shows how long it
@@ -116,14 +113,15 @@ class PipeBus(can.BusABC):
             raise can.CanOperationError("pipe send: %s" % e) from None
         # the peer's buffer is full: wait for room (select: the receiving
         # thread owns the poll object)
-        _, room, _ = select.select([], [self.sock], [], 1.0 if timeout is None else timeout)
+        wait = 1.0 if timeout is None else timeout
+        _, room, _ = select.select([], [self.sock], [], wait)
         try:
             if room:
                 self.sock.send(frame)
                 return
         except OSError as e:
             raise can.CanOperationError("pipe send: %s" % e) from None
-        raise can.CanOperationError("pipe send: no room for %g s" % (1.0 if timeout is None else timeout))
+        raise can.CanOperationError("pipe send: no room for %g s" % wait)
 
     def _recv_internal(self, timeout: Optional[float]) -> Tuple[Optional[can.Message], bool]:
         # a frame already waiting is read at once: one system call, not two
@@ -200,13 +198,12 @@ class SinkBus(can.BusABC):
     master sends are counted and dropped (SYNC and everything else still go
     out); received PDOs are counted."""
 
-    def __init__(self, inner: can.BusABC, channel: str) -> None:
+    def __init__(self, inner: can.BusABC) -> None:
         self.inner = inner
-        self.channel = channel
         self.sinking = False
         self.sent = collections.Counter()
         self.received = collections.Counter()
-        super().__init__(channel=channel)
+        super().__init__(channel=inner.channel_info)
 
     def send(self, msg: can.Message, timeout=None) -> None:
         if self.sinking:
@@ -509,7 +506,7 @@ def main() -> int:
     if args.ratio:
         return ratio(args.axes, args.rounds, args.seconds, args.plot)
     sim = SimulatorProcess(args.axes)
-    bus = SinkBus(PipeBus(sim.sock, "master"), "cycle_cpu_%d" % os.getpid())
+    bus = SinkBus(PipeBus(sim.sock, "master"))
     out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl != "baseline" else "dcf"}
     run = None
     try:
