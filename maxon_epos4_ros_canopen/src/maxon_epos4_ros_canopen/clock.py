@@ -9,7 +9,9 @@ Every timer and every wait of the driver and the simulator goes through a
   scheduler. Periodic tasks (the driver's cycle, the SYNC and heartbeat
   producers, the simulator's tick) and timers are events on its time line;
   received frames are delivered by a pump that reads each registered
-  python-can bus with ``recv(0)`` and hands every frame to its listeners.
+  python-can bus with ``recv(0)`` and hands every frame to its listeners
+  (or, for a task that reads a bus itself, keeps it for the task's
+  ``frame_reader``).
   After each event every frame sent meanwhile is delivered (and those sent
   in answer, until the buses are quiet) before the next event runs. A wait
   (``wait_until``) runs the events in time order until its condition holds
