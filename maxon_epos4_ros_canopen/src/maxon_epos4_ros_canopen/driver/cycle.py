@@ -301,17 +301,19 @@ class ControlCycle:
         self.thread = self.clock.periodic("epos4_driver_cycle", self._period, self._run_once,
                                           on_thread_start=self._on_thread_start)
 
-    def stop(self) -> bool:
+    def stop(self, join_timeout: Optional[float] = None) -> bool:
         """Stop the cycle thread and SYNC; False when the thread did not
-        end within the join timeout: it is silenced then, and keeps its
-        axes (the caller must not touch them) until it ends."""
+        end within the join timeout (``join_timeout``, at most the
+        configured one): it is silenced then, and keeps its axes (the
+        caller must not touch them) until it ends."""
         thread, self.thread = self.thread, None
         stopped = True
+        wait = self._timeouts.cycle_join if join_timeout is None else min(join_timeout, self._timeouts.cycle_join)
         if thread is not None:
             thread.stop()
-            if not thread.join(self._timeouts.cycle_join):
+            if not thread.join(wait):
                 log.error("driver cycle thread did not stop within %g s: it sends nothing more, and no "
-                          "cycle starts before it has ended", self._timeouts.cycle_join)
+                          "cycle starts before it has ended", wait)
                 self.silence()
                 self._stalled = thread
                 stopped = False
