@@ -231,3 +231,29 @@ def test_a_deadline_shares_its_time_and_collects_what_it_cut_short():
     assert deadline.passed and deadline.share(2).passed and deadline.left() == 0.0
     assert str(deadline.passed_error("y")) == "shutdown deadline (4 s) passed: y"
 
+
+def test_a_mode_switch_that_asks_to_enable_after_shutdown_began_is_refused(rig):
+    """The node stops the drives before the controllers (a controller switch
+    under way would hold the node's exit for as long as its mode switch
+    takes): a mode switch still running then may ask the cycle to enable
+    its drive after shutdown disabled it. The cycle takes only requests
+    towards a stop once shutdown began."""
+    d = rig.start()
+    assert d.init().success and d.switch_mode([J1], 3).success
+    cycle = d._cycle
+    real_stop = cycle.stop
+    asked = []
+
+    def stop_after_a_late_enable(*args, **kwargs):
+        # what the end of Lifecycle._switch_steps does, after shutdown's disable
+        asked.append(cycle.go([J1], State.OPERATION_ENABLED, timeout=0.5))
+        return real_stop(*args, **kwargs)
+    cycle.stop = stop_after_a_late_enable
+    rig.drain()
+    r = d.shutdown()
+    assert r.success, r.message
+    assert asked and asked[0] is not None  # the enable was not reached
+    assert rig.state() == State.SWITCH_ON_DISABLED
+    words = _controlwords(rig, 0x201)
+    assert words and not any(w & 0x000F == 0x000F for w in words[words.index(CW_DISABLE_VOLTAGE):]), \
+        ["0x%04X" % w for w in words]

@@ -24,7 +24,7 @@ from .configure import NodeSetup
 from .cycle import ControlCycle, DriverSnapshot
 from .deadline import Deadline
 from .inbox import (Attach, ClearBusError, ClearError, Detach, Hold, Homing, ModeConfirmed, Ready, RestartSync,
-                    SetMode, StateRequest, StopInPlace)
+                    SetMode, ShuttingDown, StateRequest, StopInPlace)
 from .link import NMT_START, NMT_STOP, Link
 from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, QUICK_STOP_OPTION_CODE, STATUSWORD, mode_of,
                     supported_modes_text)
@@ -499,7 +499,7 @@ class Lifecycle:
         names = list(self._nodes)
         if cycle.thread is not None:
             snap = cycle.snapshot.axes
-            cycle.post(StopInPlace(tuple(names)))
+            cycle.post(ShuttingDown(), StopInPlace(tuple(names)))
             attached = [n for n in names if snap[n].attached]
             # The drives the cycle hears are stopped and disabled through it,
             # all at once; those it does not hear (a drive that left
@@ -600,7 +600,7 @@ class Lifecycle:
         if cycle.thread is not None:
             snap = cycle.snapshot.axes
             quick = tuple(n for n in names if snap[n].held_state == State.OPERATION_ENABLED and snap[n].attached)
-            cycle.post(StopInPlace(names))
+            cycle.post(ShuttingDown(), StopInPlace(names))
             if quick:
                 cycle.post(StateRequest(quick, State.QUICK_STOP_ACTIVE))
             # the cycle's waits end at the abort the service got: a plain
