@@ -94,6 +94,11 @@ class Clock:
         (canopen's SDO client waits for its answer on one)."""
         raise NotImplementedError
 
+    def acquire(self, lock: Any, timeout: float) -> bool:
+        """Whether ``lock`` (anything with ``acquire(blocking, timeout)``)
+        was taken within ``timeout`` s of this clock."""
+        raise NotImplementedError
+
     def periodic(self, name: str, period: float, fn: PeriodicFn, delay: float = 0.0,
                  on_thread_start: Optional[Callable[[], None]] = None) -> Task:
         """Run ``fn`` every ``period`` s, the first time ``delay`` s from now.
@@ -243,6 +248,9 @@ class RealClock(Clock):
 
     def response_queue(self) -> "queue.Queue[Any]":
         return queue.Queue()
+
+    def acquire(self, lock: Any, timeout: float) -> bool:
+        return bool(lock.acquire(True, max(0.0, timeout)))
 
     def periodic(self, name: str, period: float, fn: PeriodicFn, delay: float = 0.0,
                  on_thread_start: Optional[Callable[[], None]] = None) -> Task:
@@ -415,6 +423,10 @@ class SteppedClock(Clock):
 
     def response_queue(self) -> "queue.Queue[Any]":
         return StepQueue(self)
+
+    def acquire(self, lock: Any, timeout: float) -> bool:
+        # one thread moves time: the events run while the lock is tried
+        return self.wait_until(lambda: bool(lock.acquire(False)), timeout)
 
     # ------------------------------------------------------------ events
     def periodic(self, name: str, period: float, fn: PeriodicFn, delay: float = 0.0,

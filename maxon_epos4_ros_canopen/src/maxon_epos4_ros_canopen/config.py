@@ -27,9 +27,9 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 from .can_device import SOCKETCAN, CanDeviceError, parse_device
 from .config_reader import ParamReader, merge_params
-from .config_schema import (DEFAULT_UNITS, HALT_MODES, PDO_LAYOUTS, SOCKETCAN_PLUGIN, SUPPORTED_DRIVE_MODES,
-                            SWITCHING_STATES, BusConfig, ConfigError, ControllerConfig, DriverConfig,
-                            HeartbeatConfig, NodeConfig, PublishConfig, RealtimeConfig, SyncConfig)
+from .config_schema import (DEFAULT_SHUTDOWN_TIMEOUT, DEFAULT_UNITS, HALT_MODES, PDO_LAYOUTS, SOCKETCAN_PLUGIN,
+                            SUPPORTED_DRIVE_MODES, SWITCHING_STATES, BusConfig, ConfigError, ControllerConfig,
+                            DriverConfig, HeartbeatConfig, NodeConfig, PublishConfig, RealtimeConfig, SyncConfig)
 from .objects import ObjectKey, ObjectStringError, parse_object_key, parse_publish_spec
 from .units import Expression, UnitExpressionError, compile_expression
 
@@ -48,8 +48,10 @@ _HEARTBEAT_KEYS = {"rate", "msg"}
 _NODE_KEYS = {"id", "name", "eds_pkg", "eds_file", "dcf_overlay", "motor_allocator",
               "motor_layer", "switching_state", "publish"} | set(_UNIT_KEYS) | {"pdo_layout", "modes", "halt_mode",
                                                                                  "readings_every"}
-_TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names", "realtime"}
+_TOP_KEYS = {"bus", "sync", "heartbeat", "nodes", "defaults", "joint_names", "realtime", "timeouts"}
 _REALTIME_KEYS = {"enabled", "priority", "lock_memory"}
+_TIMEOUT_KEYS = {"shutdown"}
+MAX_SHUTDOWN_TIMEOUT = 3600.0  # s
 _CONTROLLER_KEYS = {"type", "joint", "joints", "publish_rate", "required_drive_mode", "constraints"}
 
 _CANSEND_RE = re.compile(r"^([0-9a-fA-F]{3}|[0-9a-fA-F]{8})#((?:[0-9a-fA-F]{2}\.?){0,8}|R)$")
@@ -125,6 +127,18 @@ def _load_realtime(r: ParamReader, params: Mapping[str, Any]) -> RealtimeConfig:
     return RealtimeConfig(r.boolean(rt.get("enabled", RealtimeConfig.enabled), "realtime/enabled"),
                           r.integer(rt.get("priority", RealtimeConfig.priority), "realtime/priority", 1, 99),
                           r.boolean(rt.get("lock_memory", RealtimeConfig.lock_memory), "realtime/lock_memory"))
+
+
+def _load_shutdown_timeout(r: ParamReader, params: Mapping[str, Any]) -> float:
+    """``timeouts/shutdown`` (s): the driver's own key (ros_canopen has
+    none); other keys under ``timeouts`` are reported and ignored."""
+    timeouts = r.mapping(params.get("timeouts"), "timeouts")
+    r.unknown(timeouts, _TIMEOUT_KEYS, "timeouts/")
+    value = r.number(timeouts.get("shutdown", DEFAULT_SHUTDOWN_TIMEOUT), "timeouts/shutdown",
+                     hi=MAX_SHUTDOWN_TIMEOUT)
+    if value <= 0:
+        raise r.fail("timeouts/shutdown", "must be > 0 s")
+    return value
 
 
 def _load_heartbeat(r: ParamReader, params: Mapping[str, Any]) -> Optional[HeartbeatConfig]:
@@ -415,4 +429,6 @@ def load_config(params: Mapping[str, Any], source: str, resolver: Optional[Resol
             continue
         warnings.append("%s: unknown option %s ignored" % (source, k))
     realtime = _load_realtime(r, params)
-    return DriverConfig(source, bus, sync, heartbeat, nodes, joint_names, controllers, tuple(warnings), realtime)
+    shutdown_timeout = _load_shutdown_timeout(r, params)
+    return DriverConfig(source, bus, sync, heartbeat, nodes, joint_names, controllers, tuple(warnings), realtime,
+                        shutdown_timeout)

@@ -29,6 +29,7 @@ __all__ = [
     "PDO_LAYOUTS",
     "HALT_MODES",
     "SOCKETCAN_PLUGIN",
+    "DEFAULT_SHUTDOWN_TIMEOUT",
 ]
 
 # CiA 402 modes of operation this driver can switch to.
@@ -67,6 +68,11 @@ PDO_LAYOUTS = ("dcf", "compact")
 HALT_MODES = ("quick_stop", "halt_bit")
 
 SOCKETCAN_PLUGIN = "can::SocketCANInterface"
+
+# ``timeouts/shutdown`` (s): the driver's shutdown and close end within it.
+# Long enough for a quick stop ramp and its confirmation over SDO, well
+# short of roslaunch's 15 s between SIGINT and SIGTERM.
+DEFAULT_SHUTDOWN_TIMEOUT = 5.0
 
 
 class ConfigError(Exception):
@@ -177,6 +183,7 @@ class DriverConfig:
     controllers: Tuple[ControllerConfig, ...]
     warnings: Tuple[str, ...]
     realtime: RealtimeConfig = RealtimeConfig()
+    shutdown_timeout: float = DEFAULT_SHUTDOWN_TIMEOUT  # timeouts/shutdown
 
     def node(self, name_or_key: str) -> NodeConfig:
         for n in self.nodes:

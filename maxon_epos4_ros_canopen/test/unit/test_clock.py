@@ -128,6 +128,29 @@ def test_the_step_notifier_calls_listeners_and_their_error_handlers():
     b.shutdown()
 
 
+def test_acquire_waits_for_a_lock_on_virtual_time_at_most_its_timeout():
+    """A stepped clock runs its events while it tries the lock: a lock an
+    event releases is taken then; one nobody releases is given up at the
+    timeout, on virtual time."""
+    clock = SteppedClock()
+    lock = threading.Lock()
+    lock.acquire()
+    clock.after(0.5, lock.release)
+    assert not clock.acquire(lock, 0.2)
+    assert clock.now() == pytest.approx(0.2)
+    assert clock.acquire(lock, 1.0)
+    assert clock.now() == pytest.approx(0.5) and lock.locked()
+    assert not clock.acquire(lock, 0.0) and clock.now() == pytest.approx(0.5)
+
+
+def test_real_acquire_takes_a_free_lock_and_gives_up_on_a_held_one():
+    lock = threading.Lock()
+    assert REAL.acquire(lock, 0.0) and lock.locked()
+    assert not REAL.acquire(lock, 0.0)
+    assert not REAL.acquire(lock, -1.0)  # a deadline already past: no wait without a bound
+    lock.release()
+
+
 def test_send_periodic_sends_its_frames_in_turn_from_now():
     clock = SteppedClock()
     a, b = _virtual_pair("clock_send_%d" % id(clock))

@@ -174,6 +174,17 @@ def test_unknown_options_are_warnings(resolver):
     assert "can::OtherInterface" in text
 
 
+def test_shutdown_deadline_key(resolver):
+    """``timeouts/shutdown`` (s): the driver's own key, 5 s when absent;
+    other keys under ``timeouts`` are warnings, as every unknown option."""
+    cfg = load(["seed_001/can.yaml", "seed_001/node.yaml"], resolver)
+    assert cfg.shutdown_timeout == 5.0 and not any("timeouts" in w for w in cfg.warnings)
+    cfg = load(["seed_001/can.yaml", "seed_001/node.yaml"], resolver, timeouts={"shutdown": 2.5, "sdo": 1})
+    assert cfg.shutdown_timeout == 2.5
+    assert [w for w in cfg.warnings if "timeouts" in w] == ["test:seed_001/can.yaml+seed_001/node.yaml: "
+                                                             "unknown option timeouts/sdo ignored"]
+
+
 def test_heartbeat_and_sync_variants(resolver):
     cfg = load(["seed_001/node.yaml"], resolver, sync={"interval_ms": 0, "update_ms": 20})
     assert cfg.sync.interval_ms == 0 and cfg.sync.update_ms == 20 and cfg.heartbeat is None
@@ -220,6 +231,10 @@ def fails(resolver, match, files=("seed_001/can.yaml", "seed_001/node.yaml"), **
     ({"sync": {"interval_ms": float("inf")}}, "sync/interval_ms"),
     ({"sync": {"interval_ms": 10, "update_ms": 10 ** 400}}, "sync/update_ms"),
     ({"heartbeat": {"rate": 10 ** 400, "msg": "77f#05"}}, "heartbeat/rate"),
+    ({"timeouts": {"shutdown": 0}}, "timeouts/shutdown"),
+    ({"timeouts": {"shutdown": "5 s"}}, "timeouts/shutdown"),
+    ({"timeouts": {"shutdown": float("inf")}}, "timeouts/shutdown"),
+    ({"timeouts": 5}, "timeouts"),
 ])
 def test_wrong_values_name_the_key(resolver, overrides, key):
     if key is None:  # unknown keys are not errors

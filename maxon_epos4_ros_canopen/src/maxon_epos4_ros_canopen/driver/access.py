@@ -20,6 +20,7 @@ from ..objects import (ObjectKey, ObjectStringError, ObjectValueError, decode_va
                        find_variable, is_readable, is_writable, parse_object_key)
 from ..result import Result, fail, ok
 from .cycle import ControlCycle
+from .deadline import Deadline
 from .inbox import SetHeartbeat, SetOutput
 from .link import Link
 from .modes import POSITION_ACTUAL
@@ -56,14 +57,14 @@ class ObjectAccess:
         self.cache: Dict[str, Dict[ObjectKey, Any]] = {name: {} for name in nodes}  # under the SDO lock
 
     # =============================================================== SDO
-    def upload(self, name: str, key: ObjectKey) -> Any:
+    def upload(self, name: str, key: ObjectKey, until: Optional[Deadline] = None) -> Any:
         var = find_variable(self._nodes[name].od, key)
-        return var.decode_raw(self.sdo_transfer(name, lambda sdo: sdo.upload(key.index, key.subindex)))
+        return var.decode_raw(self.sdo_transfer(name, lambda sdo: sdo.upload(key.index, key.subindex), until))
 
-    def download(self, name: str, index: int, sub: int, data: bytes) -> None:
-        self.sdo_transfer(name, lambda sdo: sdo.download(index, sub, data))
+    def download(self, name: str, index: int, sub: int, data: bytes, until: Optional[Deadline] = None) -> None:
+        self.sdo_transfer(name, lambda sdo: sdo.download(index, sub, data), until)
 
-    def sdo_transfer(self, name: str, transfer: Callable[[SdoClient], Any]) -> Any:
+    def sdo_transfer(self, name: str, transfer: Callable[[SdoClient], Any], until: Optional[Deadline] = None) -> Any:
         """One SDO transfer, tried again when its answer was not the one asked
         for (another client on the same SDO channel, a user's tool or a test
         probe, or a stray frame can take an answer) or did not come in time
@@ -74,14 +75,30 @@ class ObjectAccess:
         the late answer to the same request still counts.
         An answer for another object means another client is busy on the
         same channel: the next try comes after a short random pause, so two
-        clients polling the drive do not meet again at once."""
-        with self._sdo_locks[name]:
+        clients polling the drive do not meet again at once.
+        ``until``: a deadline (shutdown's) the transfer ends by, waiting for
+        the node's SDO channel included: no attempt starts after it, none
+        waits past it, and then DeadlinePassed (an SdoCommunicationError)
+        says so."""
+        lock = self._sdo_locks[name]
+        if until is None:
+            lock.acquire()
+        elif not self._clock.acquire(lock, until.left()):
+            raise until.passed_error("the SDO channel of %s stayed busy with another transfer" % name)
+        try:
             client = self._link.sdo[name]
             tally = client.tally()
             late = 0
+            last: Optional[BaseException] = None
             try:
                 for attempt in range(_SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS):
-                    client.RESPONSE_TIMEOUT = self._timeouts.sdo * (late + 1)
+                    wait = self._timeouts.sdo * (late + 1)
+                    if until is not None:
+                        if until.passed:
+                            raise until.passed_error("not sent" if last is None else "not tried again after: %s" % last)
+                        wait = min(wait, until.left())
+                        client.give_up_by = until.at
+                    client.RESPONSE_TIMEOUT = wait
                     try:
                         return transfer(client)
                     except (SdoCommunicationError, struct.error) as e:
@@ -93,6 +110,10 @@ class ObjectAccess:
                         # fails to unpack (a forged or corrupt frame)
                         foreign = not no_answer(e)
                         late += 0 if foreign else 1
+                        last = e
+                        if until is not None and until.passed:
+                            # the deadline cut this attempt's wait short: no answer in time
+                            raise until.passed_error("no answer in time (%s; %s)" % (e, client.since(tally))) from e
                         if late == _SDO_ATTEMPTS or attempt + 1 == _SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS:
                             if isinstance(e, struct.error):
                                 raise SdoCommunicationError("malformed SDO answer (%s)" % e) from e
@@ -104,9 +125,13 @@ class ObjectAccess:
                         log.warning("%s: SDO transfer disturbed (%s%s): trying again",
                                     name, e, "" if foreign else "; " + client.since(tally))
                         if foreign:
-                            self._clock.sleep(self._random.uniform(0.005, 0.05))
+                            pause = self._random.uniform(0.005, 0.05)
+                            self._clock.sleep(pause if until is None else min(pause, until.left()))
             finally:
                 client.RESPONSE_TIMEOUT = self._timeouts.sdo
+                client.give_up_by = None
+        finally:
+            lock.release()
 
     def write_u32(self, name: str, index: int, sub: int, value: int) -> None:
         self.download(name, index, sub, value.to_bytes(4, "little"))
@@ -128,20 +153,21 @@ class ObjectAccess:
             return self.upload(name, key)
         return find_variable(self._nodes[name].od, key).decode_raw(data)
 
-    def await_value(self, name: str, key: ObjectKey, done: Callable[[int], bool], shows: str) -> int:
+    def await_value(self, name: str, key: ObjectKey, done: Callable[[int], bool], shows: str,
+                    until: Optional[Deadline] = None) -> int:
         """Read ``key`` over SDO until ``done(value)``, for at most the state
-        timeout: the drive's own answers, no cycle involved. An EPOS4
-        changes state within a millisecond, so the first reads come at once
-        and later ones less often."""
+        timeout (and until ``until``): the drive's own answers, no cycle
+        involved. An EPOS4 changes state within a millisecond, so the first
+        reads come at once and later ones less often."""
         deadline = self._clock.now() + self._timeouts.state
         pause = 0.0005
         while True:
-            value = int(self.upload(name, key))
+            value = int(self.upload(name, key, until))
             if done(value):
                 return value
             if self._clock.now() > deadline or self._cycle.abort.is_set():
                 raise StateTimeout(shows % value)
-            self._clock.sleep(pause)
+            self._clock.sleep(pause if until is None else min(pause, until.left()))
             pause = min(2 * pause, 0.02)
 
     # ========================================================== objects

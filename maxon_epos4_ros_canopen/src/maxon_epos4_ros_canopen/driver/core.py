@@ -62,9 +62,12 @@ class Driver:
     def __init__(self, config: DriverConfig, bus: Optional[can.BusABC] = None, *,
                  boot_timeout: float = 5.0, state_timeout: float = 5.0,
                  homing_timeout: float = 60.0, sdo_timeout: float = 1.0, cycle_join_timeout: float = 5.0,
-                 clock: Optional[Clock] = None, pdo_bus: Optional[can.BusABC] = None) -> None:
+                 shutdown_timeout: Optional[float] = None, clock: Optional[Clock] = None,
+                 pdo_bus: Optional[can.BusABC] = None) -> None:
         """``clock``: every timer and wait of the driver (real time unless
         given: a test's stepped clock runs the driver on virtual time).
+        ``shutdown_timeout``: the deadline of shutdown and close as a whole
+        (the configuration's ``timeouts/shutdown`` unless given).
         ``pdo_bus``: with ``bus``, a bus that carries the drives' TxPDOs
         and SYNC (and may carry more), which the cycle reads itself
         (driver/cycle_reception.py); without it a given bus's TxPDOs come
@@ -73,7 +76,8 @@ class Driver:
         bus)."""
         self.config = config
         self._timeouts = Timeouts(sdo=sdo_timeout, boot=boot_timeout, state=state_timeout, homing=homing_timeout,
-                                  cycle_join=cycle_join_timeout)
+                                  cycle_join=cycle_join_timeout,
+                                  shutdown=config.shutdown_timeout if shutdown_timeout is None else shutdown_timeout)
         self._nodes = NodeTable(config)
         inbox: "queue.SimpleQueue[Any]" = queue.SimpleQueue()  # the cycle's; the link posts to it
         self._link = Link(config, self._nodes, self._timeouts, inbox.put, bus, as_clock(clock), pdo_bus)
@@ -121,6 +125,14 @@ class Driver:
     @cycle_join_timeout.setter
     def cycle_join_timeout(self, value: float) -> None:
         self._timeouts.cycle_join = value
+
+    @property
+    def shutdown_timeout(self) -> float:
+        return self._timeouts.shutdown
+
+    @shutdown_timeout.setter
+    def shutdown_timeout(self, value: float) -> None:
+        self._timeouts.shutdown = value
 
     # ============================================================ state
     @property
@@ -232,12 +244,15 @@ class Driver:
         return self._lifecycle.recover()
 
     def shutdown(self) -> Result:
-        """Quick stop and disable every drive, stop SYNC, NMT stop."""
+        """Quick stop and disable every drive, stop SYNC, NMT stop, within
+        ``shutdown_timeout`` s (the answer names the steps it cut short)."""
         return self._lifecycle.shutdown()
 
     def close(self) -> None:
-        """Leave the drives safe and release the bus (node exit); never raises.
-        A service still waiting (init homing...) is made to give up first."""
+        """Leave the drives safe and release the bus (node exit) within
+        ``shutdown_timeout`` s; never raises. A service still waiting (init
+        homing...) is made to give up first; one that does not let go of
+        the driver in time does not keep the drives from being stopped."""
         self._lifecycle.close()
 
     # ========================================================== objects

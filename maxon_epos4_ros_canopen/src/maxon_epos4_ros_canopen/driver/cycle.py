@@ -59,8 +59,8 @@ from .check import check_command
 from .cycle_reception import CYCLE_TASK
 from .snapshot import AxisSnapshot, env_for_check, initial_snapshot
 from .inbox import (Attach, ClearBusError, ClearError, Command, Detach, Emcy, Heartbeat, Hold, Homing,
-                    ModeConfirmed, Ready, RestartSync, SetHeartbeat, SetLimits, SetMode, SetOutput, StateRequest,
-                    StopInPlace, Together)
+                    ModeConfirmed, Ready, RestartSync, SetHeartbeat, SetLimits, SetMode, SetOutput, ShuttingDown,
+                    StateRequest, StopInPlace, Together)
 from .link import Link
 from .nodes import InitError, NodeTable, Timeouts
 
@@ -69,6 +69,8 @@ log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 PDO_MISSING_CYCLES = 50
 WALL_OFFSET_REFRESH = 1.0  # s
 BUS_ERROR_CYCLES = 10  # cycles in a row whose frames were refused: a bus error
+# the states a request may still ask for once shutdown has begun (ShuttingDown)
+_STOP_STATES = (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)
 _get_ident = threading.get_ident
 _tuple_new = tuple.__new__
 
@@ -124,6 +126,7 @@ class ControlCycle:
         self.realtime: Optional[realtime.Outcome] = None  # what the cycle thread got at its start
         self.bus_error: Optional[str] = None
         self.send_failures = 0
+        self._shutting_down = False  # ShuttingDown came: only stopping state requests are taken
         self._clear_bus_error = False  # recover asked: the next cycle whose frames go out clears bus_error
         self._send_error: Optional[BaseException] = None
         self._out_frames: Dict[int, can.Message] = {}  # COB-ID -> the message _send reuses
@@ -219,8 +222,14 @@ class ControlCycle:
             if axis is not None:
                 axis.inputs.on_emcy(m.data, m.time)
         elif kind is StateRequest:
+            if self._shutting_down and m.state not in _STOP_STATES:
+                log.warning("%s: request for %s ignored: shutdown has begun", ", ".join(m.axes),
+                            m.state.value if m.state else "no state")
+                return
             for name in m.axes:
                 self.axis[name].request_state(m.state, m.fault_reset, self.clock.now())
+        elif kind is ShuttingDown:
+            self._shutting_down = True
         elif kind is StopInPlace:
             for name in m.axes:
                 self.axis[name].stop_in_place()
@@ -283,6 +292,7 @@ class ControlCycle:
             raise InitError("the control cycle of the last session has not ended yet")
         self._stalled = None
         self._silenced = False
+        self._shutting_down = False  # a new session (no cycle thread runs yet)
         self._link.open_sync()
         self.axes = axes
         self.axis = {a.name: a for a in axes}
@@ -309,17 +319,19 @@ class ControlCycle:
         self.thread = self.clock.periodic(CYCLE_TASK, self._period, self._run_once,
                                           on_thread_start=self._on_thread_start)
 
-    def stop(self) -> bool:
+    def stop(self, join_timeout: Optional[float] = None) -> bool:
         """Stop the cycle thread and SYNC; False when the thread did not
-        end within the join timeout: it is silenced then, and keeps its
-        axes (the caller must not touch them) until it ends."""
+        end within the join timeout (``join_timeout``, at most the
+        configured one): it is silenced then, and keeps its axes (the
+        caller must not touch them) until it ends."""
         thread, self.thread = self.thread, None
         stopped = True
+        wait = self._timeouts.cycle_join if join_timeout is None else min(join_timeout, self._timeouts.cycle_join)
         if thread is not None:
             thread.stop()
-            if not thread.join(self._timeouts.cycle_join):
+            if not thread.join(wait):
                 log.error("driver cycle thread did not stop within %g s: it sends nothing more, and no "
-                          "cycle starts before it has ended", self._timeouts.cycle_join)
+                          "cycle starts before it has ended", wait)
                 self.silence()
                 self._stalled = thread
                 stopped = False

@@ -32,6 +32,13 @@ class StopInPlace:
 
 
 @dataclass(frozen=True)
+class ShuttingDown:
+    """Shutdown has begun: from here on the cycle takes state requests only
+    towards a stop (a mode switch still under way must not enable a drive
+    shutdown has stopped)."""
+
+
+@dataclass(frozen=True)
 class Hold:
     axis: str
     raw_position: int

@@ -22,8 +22,9 @@ from .axis import SWITCHING_STATE, Axis, Binding
 from .budget import check_budget
 from .configure import NodeSetup
 from .cycle import ControlCycle, DriverSnapshot
+from .deadline import Deadline
 from .inbox import (Attach, ClearBusError, ClearError, Detach, Hold, Homing, ModeConfirmed, Ready, RestartSync,
-                    SetMode, StateRequest, StopInPlace)
+                    SetMode, ShuttingDown, StateRequest, StopInPlace)
 from .link import NMT_START, NMT_STOP, Link
 from .modes import (HOMING, MODES_DISPLAY, MODES_OF_OPERATION, QUICK_STOP_OPTION_CODE, STATUSWORD, mode_of,
                     supported_modes_text)
@@ -32,6 +33,12 @@ from .plan import HOMING_METHOD, MODE_TARGETS
 from .stopping import HEARD_CYCLES, Stopping
 
 log = logging.getLogger("maxon_epos4_ros_canopen.driver")
+
+# Shutdown's deadline keeps this many times the wait for a controlword
+# through the cycle (Stopping.grace) for what runs after its SDO steps: the
+# disable voltage through the cycle, two cycles for the drives stopped over
+# SDO, stopping the cycle, NMT stop, closing the bus (at most half of it).
+_TAIL_GRACES = 3
 
 
 class Lifecycle:
@@ -51,6 +58,7 @@ class Lifecycle:
         self._stopping = Stopping(nodes, access, cycle, timeouts)
         self.service = threading.Lock()
         self.initialized = False
+        self._tearing_down = False  # a teardown runs: close must not cut its waits short
         self._requested_modes: Dict[str, Optional[int]] = {name: None for name in nodes}
 
     # ============================================================== init
@@ -452,22 +460,46 @@ class Lifecycle:
     def shutdown(self) -> Result:
         """See Driver.shutdown."""
         with self.service:
-            if not self.initialized and self._link.network is None:
-                return ok("driver was not initialized")
-            problems = self._teardown()
-            if problems:
-                return fail("shut down with problems: " + "; ".join(problems))
-            return ok("shut down")
+            return self._shutdown(Deadline(self._clock, self._timeouts.shutdown))
 
-    def _teardown(self) -> List[str]:
+    def _shutdown(self, deadline: Deadline) -> Result:
+        if not self.initialized and self._link.network is None:
+            return ok("driver was not initialized")
+        problems = self._teardown(deadline)
+        if problems:
+            return fail("shut down with problems: " + "; ".join(problems))
+        return ok("shut down")
+
+    def _tail(self) -> float:
+        """s of shutdown's deadline kept for its steps after the SDO ones."""
+        return min(_TAIL_GRACES * self._stopping.grace, self._timeouts.shutdown / 2)
+
+    def _teardown(self, deadline: Optional[Deadline] = None) -> List[str]:
         """Bring every drive the driver can reach to rest and disable it; a
-        drive that does not answer does not keep the others running."""
+        drive that does not answer does not keep the others running, and
+        the whole ends by ``deadline`` (shutdown's, from now unless given):
+        the SDO steps get only the time left before it (less the tail), the
+        steps that stop drives by PDO and NMT and close the bus always run.
+        The problems, the last naming the steps the deadline cut short."""
+        if deadline is None:
+            deadline = Deadline(self._clock, self._timeouts.shutdown)
+        self._tearing_down = True
+        try:
+            return self._teardown_steps(deadline)
+        finally:
+            self._tearing_down = False
+
+    def _teardown_steps(self, deadline: Deadline) -> List[str]:
         cycle, link, stopping = self._cycle, self._link, self._stopping
+        # the waits of the stop itself must run, whoever asked for it (a
+        # close that set the abort for the service this teardown ends)
+        cycle.abort.clear()
+        sdo_until = deadline.earlier(self._tail())
         problems: List[str] = []
         names = list(self._nodes)
         if cycle.thread is not None:
             snap = cycle.snapshot.axes
-            cycle.post(StopInPlace(tuple(names)))
+            cycle.post(ShuttingDown(), StopInPlace(tuple(names)))
             attached = [n for n in names if snap[n].attached]
             # The drives the cycle hears are stopped and disabled through it,
             # all at once; those it does not hear (a drive that left
@@ -477,15 +509,20 @@ class Lifecycle:
             # (anyone can forge one) does not decide the way.
             now = cycle.snapshot.cycle
             heard = [n for n in attached if now - snap[n].status_cycle <= HEARD_CYCLES]
-            done = stopping.stop_and_disable_by_pdo(heard)
+            done = stopping.stop_and_disable_by_pdo(heard, sdo_until)
+            # released before the SDO way's drives take their turn: one of
+            # them that does not answer then takes no time from these
+            stopping.release_heartbeat_consumers(done, sdo_until)
             rest = [n for n in attached if n not in done]
-            _, errors = each_node_collect(self._nodes, rest, stopping.stop_and_disable, self._clock)
+            _, errors = each_node_collect(self._nodes, rest, lambda n: stopping.stop_and_disable(n, until=sdo_until),
+                                          self._clock)
             if rest:
                 # a drive still in OPERATIONAL then shows its last state on the bus too
                 cycle.wait_cycles(2)
             problems.extend(errors[n] for n in rest if n in errors)
-            stopping.release_heartbeat_consumers([n for n in attached if n not in errors])
-        stopped = cycle.stop()
+            stopping.release_heartbeat_consumers([n for n in rest if n not in errors], sdo_until)
+        # a cycle thread that stalled must not hold the rest past the deadline for long
+        stopped = cycle.stop(max(deadline.left(), 1.0))
         if stopped:
             # The cycle thread is gone: the axes are this thread's again.
             for axis in cycle.axes:
@@ -494,37 +531,90 @@ class Lifecycle:
                     self._requested_modes[axis.name] = axis.active_mode
         else:
             # A stalled cycle thread keeps its axes (silenced) until it ends.
-            problems.append("the control cycle did not stop within %g s" % self._timeouts.cycle_join)
+            problems.append("the control cycle did not stop within %g s"
+                            % min(max(deadline.left(), 1.0), self._timeouts.cycle_join))
             for name, a in cycle.snapshot.axes.items():
                 if a.active_mode is not None:
                     self._requested_modes[name] = a.active_mode
-        if link.network is not None:
-            for node in self._nodes.values():
-                try:
-                    link.nmt(NMT_STOP, node.cfg.node_id)
-                except (can.CanError, OSError) as e:
-                    problems.append("NMT stop of %s: %s" % (node.cfg.name, e))
-                    continue
-                axis = cycle.axis.get(node.cfg.name)
-                if axis is not None and stopped:
-                    axis.inputs.nmt_state = "STOPPED"
+        problems.extend(self._nmt_stop_all(stopped))
         if cycle.axes and stopped:
             cycle.publish(cycle.axes)
         link.close()
         self.initialized = False
+        report = deadline.report()
+        if report:
+            log.warning("shutdown: %s", report)
+            problems.append(report)
+        return problems
+
+    def _nmt_stop_all(self, stopped: bool) -> List[str]:
+        """NMT stop to every node (the problems); the axes say STOPPED when
+        ``stopped`` (the cycle thread is gone and they are this thread's)."""
+        problems: List[str] = []
+        link, cycle = self._link, self._cycle
+        if link.network is None:
+            return problems
+        for node in self._nodes.values():
+            try:
+                link.nmt(NMT_STOP, node.cfg.node_id)
+            except (can.CanError, OSError) as e:
+                problems.append("NMT stop of %s: %s" % (node.cfg.name, e))
+                continue
+            axis = cycle.axis.get(node.cfg.name)
+            if axis is not None and stopped:
+                axis.inputs.nmt_state = "STOPPED"
         return problems
 
     def close(self) -> None:
-        """See Driver.close."""
+        """See Driver.close: within the shutdown deadline from now, also
+        when a service does not let go of the driver in time."""
         try:
-            self._cycle.abort.set()
-            got = self.service.acquire(timeout=10.0)
-            if got:
+            deadline = Deadline(self._clock, self._timeouts.shutdown)
+            if not self._tearing_down:
+                self._cycle.abort.set()  # a service still waiting (homing, a state) gives up
+            # the wait for the service is part of the deadline: what follows keeps the tail
+            if not self._clock.acquire(self.service, max(0.0, deadline.left() - self._tail())):
+                self._stop_without_service(deadline)
+                return
+            try:
+                self._cycle.abort.clear()  # shutdown's own waits (quick stop) must run
+                if self.initialized or self._link.network is not None:
+                    r = self._shutdown(deadline)
+                    if not r:
+                        log.error("close: %s", r.message)
+            finally:
                 self.service.release()
-            self._cycle.abort.clear()  # shutdown's own waits (quick stop) must run
-            if self.initialized or self._link.network is not None:
-                r = self.shutdown()
-                if not r:
-                    log.error("close: %s", r.message)
         except Exception:
             log.exception("close failed")
+
+    def _stop_without_service(self, deadline: Deadline) -> None:
+        """close() when a service held the driver until the deadline (an init
+        stuck on a silent bus, say): what stops the drives runs without it.
+        Quick stop through the cycle (a disable would need the standstill
+        read over SDO, which the service may hold), the cycle stopped (the
+        service's waits end at once), NMT stop to every node, the bus closed
+        (its transfers fail and it ends)."""
+        cycle, link = self._cycle, self._link
+        names = tuple(self._nodes)
+        done = []
+        if cycle.thread is not None:
+            snap = cycle.snapshot.axes
+            quick = tuple(n for n in names if snap[n].held_state == State.OPERATION_ENABLED and snap[n].attached)
+            cycle.post(ShuttingDown(), StopInPlace(names))
+            if quick:
+                cycle.post(StateRequest(quick, State.QUICK_STOP_ACTIVE))
+            # the cycle's waits end at the abort the service got: a plain
+            # sleep lets the controlword go out for a few cycles
+            self._clock.sleep(self._stopping.grace)
+            done.append("quick stop through the cycle" + (" (%s)" % ", ".join(quick) if quick else ""))
+            stopped = cycle.stop(max(deadline.left(), 1.0))
+            done.append("cycle stopped" if stopped else "cycle silenced (it did not stop)")
+        problems = self._nmt_stop_all(False)
+        if link.network is not None and not problems:
+            done.append("NMT stop to every node")
+        link.close()
+        done.append("bus closed")
+        deadline.note("waiting for the driver service that held it: standstill over SDO, disable voltage and "
+                      "releasing the heartbeat consumers skipped")
+        log.error("close: a driver service still held the driver at the %s: %s; %s",
+                  deadline, ", ".join(done), "; ".join(problems + [deadline.report() or ""]))

@@ -14,7 +14,7 @@ from typing import Any, Callable, Dict, ItemsView, Iterator, NamedTuple, Optiona
 import canopen
 
 from ..clock import Clock
-from ..config_schema import ConfigError, DriverConfig
+from ..config_schema import DEFAULT_SHUTDOWN_TIMEOUT, ConfigError, DriverConfig
 from ..objects import load_dictionary
 from ..result import Result, fail
 from .convert import Converter
@@ -42,6 +42,9 @@ class Timeouts:
     state: float = 5.0
     homing: float = 60.0
     cycle_join: float = 5.0  # how long shutdown waits for the cycle thread to end
+    # shutdown and close as a whole: every SDO step of it gets only the time
+    # left, the steps that stop drives by PDO and NMT run whatever is left
+    shutdown: float = DEFAULT_SHUTDOWN_TIMEOUT
 
 
 class NodeTable:

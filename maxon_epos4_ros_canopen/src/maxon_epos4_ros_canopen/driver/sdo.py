@@ -97,6 +97,8 @@ class GuardedSdoClient(ClockedSdoClient):
         self.frames = 0                      # every frame on the answer COB-ID
         self.dropped = 0                     # those taken for no answer
         self.last_dropped = ""               # why the last of them was no answer
+        # set by the transfer's owner: no backlog is waited on past it (clock time)
+        self.give_up_by: Optional[float] = None
 
     def send_request(self, request: bytes) -> None:
         command = request[0] >> 5
@@ -119,6 +121,8 @@ class GuardedSdoClient(ClockedSdoClient):
         # Past max_lag the receive clock takes a frame for read on arrival:
         # no backlog is waited on longer than that.
         give_up = self.clock.now() + self._receive_clock.max_lag
+        if self.give_up_by is not None:  # a deadline (shutdown's) ends the wait for a backlog too
+            give_up = min(give_up, self.give_up_by)
         self.RESPONSE_TIMEOUT = _BACKLOG_POLL
         try:
             while self._receive_clock.unread_before(answer_by) and self.clock.now() < give_up:
