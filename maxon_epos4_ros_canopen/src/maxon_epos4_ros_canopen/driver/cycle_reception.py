@@ -42,6 +42,7 @@ import can
 
 from ..can_device import ArrivalClock, enlarge_receive_buffer
 from ..clock import Clock, FrameReader
+from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_MTU, CAN_RTR_FLAG, CAN_SFF_MASK, SO_TIMESTAMPNS, decode
 from .bus import SYNC_COB_ID
 from .pdo import TpdoReceiver
 
@@ -54,12 +55,7 @@ CYCLE_TASK = "epos4_driver_cycle"
 # clock, the kernel's stamp); the stamp is None where none came.
 Received = Tuple[int, bytes, Optional[float]]
 
-# Linux's <linux/can.h> and <asm-generic/socket.h>
-CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG, CAN_SFF_MASK = 0x80000000, 0x40000000, 0x20000000, 0x7FF
-SO_TIMESTAMPNS = 35
-_CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: can_id, len, padding, data
-_TIMESPEC = struct.Struct("@ll")       # struct timespec: tv_sec, tv_nsec
-_FILTER = struct.Struct("=II")         # struct can_filter: can_id, can_mask
+_FILTER = struct.Struct("=II")  # struct can_filter: can_id, can_mask
 # per frame read, per expected frame of a cycle: room for a late cycle's backlog
 BUDGET_PER_FRAME = 8
 MIN_BUDGET = 64
@@ -68,19 +64,14 @@ ERROR_LOG_INTERVAL = 1.0  # s
 
 def parse_frame(frame: bytes, ancillary: Iterable[Tuple[int, int, bytes]]) -> Optional[Received]:
     """A SocketCAN ``struct can_frame`` and its receive stamp as a
-    Received; None for what is no standard data frame (extended, remote,
-    error, truncated)."""
-    if len(frame) < _CAN_FRAME.size:
+    Received; None for what is no classic standard data frame (extended,
+    remote, error, CAN FD, a length over 8, truncated)."""
+    if len(frame) != CAN_MTU or frame[4] > 8:
         return None
-    can_id, length, data = _CAN_FRAME.unpack_from(frame)
-    if can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG) or length > 8:
+    can_id, data, stamp = decode(frame, list(ancillary))
+    if can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG):
         return None
-    stamp = None
-    for level, kind, value in ancillary:
-        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(value) >= _TIMESPEC.size:
-            sec, nsec = _TIMESPEC.unpack_from(value)
-            stamp = sec + nsec * 1e-9
-    return can_id, data[:length], stamp
+    return can_id, data, stamp or None
 
 
 class RawCanReceiver:
@@ -106,14 +97,14 @@ class RawCanReceiver:
             sock.close()
             raise
         self._sock = sock
-        self._ancillary = socket.CMSG_SPACE(_TIMESPEC.size)
+        self._ancillary = socket.CMSG_SPACE(16)  # one struct timespec
 
     def take(self, limit: int) -> Tuple[List[Received], Optional[BaseException]]:
         """Up to ``limit`` frames waiting, oldest first, and the receive
         error that ended the read (None: the socket was empty or the limit
         reached)."""
         out: List[Received] = []
-        recvmsg, size, ancillary = self._sock.recvmsg, _CAN_FRAME.size, self._ancillary
+        recvmsg, size, ancillary = self._sock.recvmsg, CAN_MTU, self._ancillary
         while len(out) < limit:
             try:
                 frame, anc, _flags, _addr = recvmsg(size, ancillary)

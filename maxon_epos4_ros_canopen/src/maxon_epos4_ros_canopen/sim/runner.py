@@ -26,7 +26,7 @@ from ..can_device import ArrivalClock, DeliveryDelay, max_receive_lag, open_devi
 from ..clock import Clock, Task
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
-from .rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, RawSocketcan, socketcan_socket
+from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, RawSocketcan, socketcan_socket
 
 log = logging.getLogger(__name__)
 # A loop pass woken this much later than it asked to be was stalled (s).
@@ -74,7 +74,7 @@ class Simulator:
         if len(set(ids)) != len(ids):
             raise ValueError("node ids must be unique: %s" % ids)
         self.bus = bus
-        # a SocketCAN bus is read and written on its socket directly (rawcan.py)
+        # a SocketCAN bus is read and written on its socket directly (../rawcan.py)
         sock = socketcan_socket(bus)
         self._raw: Optional[RawSocketcan] = RawSocketcan(sock) if sock is not None else None
         self.tick_period = tick

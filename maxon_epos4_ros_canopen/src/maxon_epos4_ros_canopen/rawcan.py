@@ -1,4 +1,5 @@
-"""The simulator's frames straight on a SocketCAN socket.
+"""CAN frames straight on a SocketCAN socket, for the simulator's bus and
+the driver cycle's own receiver (driver/cycle_reception.py).
 
 python-can's SocketCAN bus makes several system calls per frame: a send
 reads the wall clock and polls the socket before writing, a receive reads
@@ -8,8 +9,7 @@ Linux every system call is a round trip through the host (a clock read
 about 25 µs), and for the simulator, which sends and receives several
 frames per drive and SYNC, they were most of its CPU. Here a frame is one
 system call each way (a receive that may wait polls first, as python-can
-does), on the socket python-can opened and configured (kernel time stamps,
-receive buffer), in the same struct can_frame layout (<linux/can.h>).
+does), in the same struct can_frame layout (<linux/can.h>).
 """
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ from typing import Any, Optional, Tuple
 # struct can_frame / canfd_frame: can_id, len, flags (FD), reserved, len8_dlc, then the data
 _HEADER = struct.Struct("=IBB1xB")
 _STAMP = struct.Struct("@ll")  # struct timespec of SO_TIMESTAMPNS
-_SO_TIMESTAMPNS = 35
-CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
+SO_TIMESTAMPNS = 35
+CAN_EFF_FLAG, CAN_RTR_FLAG, CAN_ERR_FLAG, CAN_SFF_MASK = 0x80000000, 0x40000000, 0x20000000, 0x7FF
 CAN_MTU, CANFD_MTU = 16, 72
 try:
     _ANCILLARY = socket.CMSG_SPACE(_STAMP.size)
@@ -61,7 +61,7 @@ def decode(frame: bytes, ancillary: list) -> Frame:
     can_id, length, _, _ = _HEADER.unpack_from(frame)
     stamp = 0.0
     for level, kind, data in ancillary:
-        if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _STAMP.size:
             seconds, nanoseconds = _STAMP.unpack_from(data)
             stamp = seconds + nanoseconds * 1e-9  # python-can's own sum: the same float
     if can_id & CAN_RTR_FLAG:

@@ -1,4 +1,4 @@
-"""The simulator's own SocketCAN frames (sim/rawcan.py) against
+"""The simulator's own SocketCAN frames (rawcan.py) against
 python-can's: the same bytes to the kernel, the same frame read back, and
 a simulator that serves a "SocketCAN" bus through them. This host's
 kernel has no SocketCAN: a socketpair stands in for the CAN socket (the
@@ -13,7 +13,7 @@ from can.interfaces.socketcan import SocketcanBus
 from can.interfaces.socketcan import socketcan as pcan
 
 from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
-from maxon_epos4_ros_canopen.sim import rawcan
+from maxon_epos4_ros_canopen import rawcan
 from sim_support import NODE1
 
 FRAMES = 3000
