@@ -30,12 +30,11 @@ from typing import Any, Callable, List, Tuple
 import can
 import pytest
 
-from maxon_epos4_ros_canopen.clock import Clock
 from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
 from maxon_epos4_ros_canopen.sim.drive import VirtualEpos4
 from maxon_epos4_ros_canopen.sim.objects import load_od
 from sim_reference import ReferenceEpos4, ReferenceSimulator
-from sim_support import NODE1, NODE1_HM
+from sim_support import NODE1, NODE1_HM, WALL_OFFSET, ScriptedClock
 
 SEQUENCES = 160
 COMMANDS = 220
@@ -220,20 +219,8 @@ def test_the_per_tick_motion_is_the_reference_motion_bit_for_bit(part):
 
 
 # ---------------------------------------------------------------- the loop
-WALL_OFFSET = 1000.0  # frames are stamped on the wall clock
 RUNS = 24
 RUN_SECONDS = 1.5
-
-
-class ScriptedClock(Clock):
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
-
-    def wall(self) -> float:
-        return self.t + WALL_OFFSET
 
 
 class ScriptedBus(can.BusABC):
