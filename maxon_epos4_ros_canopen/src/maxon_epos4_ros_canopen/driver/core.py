@@ -72,8 +72,8 @@ class Driver:
         and SYNC (and may carry more), which the cycle reads itself
         (driver/cycle_reception.py); without it a given bus's TxPDOs come
         through the notifier thread. A bus the driver opens itself gets
-        its own where the adapter allows (SocketCAN, python-can's virtual
-        bus)."""
+        its own on SocketCAN (and python-can's virtual bus in stepped
+        runs)."""
         self.config = config
         self._timeouts = Timeouts(sdo=sdo_timeout, boot=boot_timeout, state=state_timeout, homing=homing_timeout,
                                   cycle_join=cycle_join_timeout,

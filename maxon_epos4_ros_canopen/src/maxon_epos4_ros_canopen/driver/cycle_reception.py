@@ -24,12 +24,14 @@ Receivers:
 
 * ``RawCanReceiver``: a SocketCAN raw socket of its own, kernel-filtered.
 * ``BusReceiver``: any python-can bus that carries those frames (a second
-  python-can virtual bus on the driver's channel, or a bus a caller gives),
-  read through the clock (clock.Clock.frame_reader): a stepped clock
-  delivers to it as to everything else.
+  python-can virtual bus on the driver's channel in stepped runs, or a bus
+  a caller gives), read through the clock (clock.Clock.frame_reader): a
+  stepped clock delivers to it as to everything else.
 
 Adapters that cannot open a second receiver on one channel (vendor
-libraries) keep the notifier path (link.py).
+libraries) keep the notifier path (link.py), and so does python-can's
+virtual bus on the wall clock, where the fast suite's real-time tests run
+that path.
 """
 from __future__ import annotations
 
