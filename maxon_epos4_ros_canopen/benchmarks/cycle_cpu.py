@@ -150,9 +150,34 @@ class PipeBus(can.BusABC):
         super().shutdown()
 
 
-def _serve_simulator(sock: socket.socket, axes: int, ready, stop) -> None:
-    """The simulator process: ``axes`` virtual EPOS4 on ``sock`` until ``stop`` is set."""
-    bus = PipeBus(sock, "simulator")
+class SplitBus(can.BusABC):
+    """The simulator's end when the driver reads its TxPDOs from a pipe of
+    their own (Driver's ``pdo_bus``), as the driver's kernel filter splits
+    them from the rest on SocketCAN: TxPDOs go out on ``pdo``, everything
+    else on ``main``, which alone carries frames from the master."""
+
+    def __init__(self, main: PipeBus, pdo: PipeBus) -> None:
+        self.main, self.pdo = main, pdo
+        super().__init__(channel=main.channel_info)
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        (self.pdo if 0x180 <= msg.arbitration_id < 0x500 else self.main).send(msg, timeout)
+
+    def _recv_internal(self, timeout: Optional[float]) -> Tuple[Optional[can.Message], bool]:
+        return self.main.recv(timeout), False
+
+    def shutdown(self) -> None:
+        self.main.shutdown()
+        self.pdo.shutdown()
+        super().shutdown()
+
+
+def _serve_simulator(sock: socket.socket, pdo_sock: Optional[socket.socket], axes: int, ready, stop) -> None:
+    """The simulator process: ``axes`` virtual EPOS4 on ``sock`` (TxPDOs on
+    ``pdo_sock`` when given) until ``stop`` is set."""
+    bus: can.BusABC = PipeBus(sock, "simulator")
+    if pdo_sock is not None:
+        bus = SplitBus(bus, PipeBus(pdo_sock, "simulator_pdo"))
     sim = Simulator(bus, [NodeConfig(i, DCF) for i in range(1, axes + 1)], tick=0.005).start()
     ready.set()
     stop.wait()
@@ -164,16 +189,22 @@ class SimulatorProcess:
     """The virtual EPOS4 in a process of its own (its own GIL: see the
     module text), forked before this process starts any thread."""
 
-    def __init__(self, axes: int) -> None:
+    def __init__(self, axes: int, pdo_pipe: bool = False) -> None:
+        """``pdo_pipe``: the TxPDOs come on a pipe of their own (``pdo_sock``)."""
         ctx = multiprocessing.get_context("fork")
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        pdo_mine, pdo_theirs = (socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET) if pdo_pipe
+                                else (None, None))
         self.stop_event = ctx.Event()
         ready = ctx.Event()
-        self.process = ctx.Process(target=_serve_simulator, args=(theirs, axes, ready, self.stop_event),
+        self.process = ctx.Process(target=_serve_simulator, args=(theirs, pdo_theirs, axes, ready, self.stop_event),
                                    name="virtual_epos4", daemon=True)
         self.process.start()
         theirs.close()
+        if pdo_theirs is not None:
+            pdo_theirs.close()
         self.sock = mine
+        self.pdo_sock = pdo_mine
         # the drives answer from the start, as they did in this process:
         # loading 32 dictionaries takes longer than an SDO timeout
         if not ready.wait(60.0):
@@ -243,7 +274,8 @@ def thread_label(name: str) -> str:
     return {"epos4_driver_cycle": "cycle", "virtual_epos4": "simulator", "MainThread": "main"}.get(name, name)
 
 
-def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True) -> dict:
+def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True, pdo_bus: Optional[SinkBus] = None
+               ) -> dict:
     from maxon_epos4_ros_canopen.config import load_config
     from maxon_epos4_ros_canopen.driver import Driver
 
@@ -253,7 +285,8 @@ def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True) -> dic
     params = {"bus": {"device": "virtual:unused"}, "sync": {"interval_ms": PERIOD * 1000},
               "nodes": [{"id": i, "name": "j%d" % i} for i in range(1, axes + 1)], "defaults": defaults}
     # generous waits: they only bound how long a failure takes on a loaded host
-    driver = Driver(load_config(params, "benchmark"), bus=bus, state_timeout=20.0, sdo_timeout=5.0)
+    driver = Driver(load_config(params, "benchmark"), bus=bus, pdo_bus=pdo_bus, state_timeout=20.0,
+                    sdo_timeout=5.0)
     names = list(driver.joints)
     t0 = time.perf_counter()
     r = driver.init()
@@ -505,13 +538,16 @@ def main() -> int:
     args = ap.parse_args()
     if args.ratio:
         return ratio(args.axes, args.rounds, args.seconds, args.plot)
-    sim = SimulatorProcess(args.axes)
+    # the driver reads its TxPDOs on a pipe of their own, as on SocketCAN
+    # (driver/cycle_reception.py); the loops written here read one socket
+    sim = SimulatorProcess(args.axes, pdo_pipe=args.impl == "driver")
     bus = SinkBus(PipeBus(sim.sock, "master"))
+    pdo_bus = SinkBus(PipeBus(sim.pdo_sock, "master_pdo")) if sim.pdo_sock is not None else None
     out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl != "baseline" else "dcf"}
     run = None
     try:
         if args.init_only:
-            run = run_driver(bus, args.axes, args.layout, switch=False)
+            run = run_driver(bus, args.axes, args.layout, switch=False, pdo_bus=pdo_bus)
             out.update({"ok": True, "init_s": run["init_s"]})
             # The figure is taken: the process ends here. Shutting down 127
             # axes through a 10 ms cycle is more than this process's CPU
@@ -522,13 +558,15 @@ def main() -> int:
             os._exit(0)
         else:
             if args.impl == "driver":
-                run = run_driver(bus, args.axes, args.layout)
+                run = run_driver(bus, args.axes, args.layout, pdo_bus=pdo_bus)
             elif args.impl == "lean":
                 run = run_lean(bus, args.axes, args.layout)
             else:
                 run = run_baseline(bus, args.axes)
             time.sleep(0.5)  # settle: mode switch done, targets moving
             bus.sinking = True
+            if pdo_bus is not None:
+                pdo_bus.sinking = True
             threads0 = thread_cpu()
             cpu0, sim0, wall0 = time.process_time(), sim.cpu_seconds(), time.monotonic()
             sync0 = bus.sent[SYNC_ID]
@@ -544,7 +582,8 @@ def main() -> int:
                 "cpu_per_axis_us": master_cpu / cycles / args.axes * 1e6,
                 "sim_cpu_share": sim_cpu / wall,
                 "rx_pdos_per_axis": sum(n for k, n in bus.sent.items() if 0x200 <= k < 0x580) / cycles / args.axes,
-                "tx_pdos_per_axis": sum(bus.received.values()) / cycles / args.axes,
+                "tx_pdos_per_axis": (sum(bus.received.values()) + (
+                    sum(pdo_bus.received.values()) if pdo_bus is not None else 0)) / cycles / args.axes,
             })
             out["pdos_per_axis"] = out["rx_pdos_per_axis"] + out["tx_pdos_per_axis"]
             # per thread of the master, us per axis per cycle (the simulator runs in its own process)
@@ -557,6 +596,8 @@ def main() -> int:
             run["stop"]()
         sim.stop()
         bus.shutdown()
+        if pdo_bus is not None:
+            pdo_bus.shutdown()
     out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(json.dumps(out))
     return 0 if out["ok"] else 1

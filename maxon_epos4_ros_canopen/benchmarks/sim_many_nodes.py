@@ -53,7 +53,7 @@ def run(count: int, seconds: float) -> dict:
     sim_bus = can.Bus(interface="virtual", channel=channel)
     master = can.Bus(interface="virtual", channel=channel)
     ids = list(range(1, count + 1))
-    sim = Simulator(sim_bus, [NodeConfig(i, DCF) for i in ids], tick=0.005).start()
+    sim = Simulator(sim_bus, [NodeConfig(i, DCF) for i in ids], tick=0.005, statistics=True).start()
     try:
         for i in ids:  # CSP, RxPDO2 asynchronous so the target lands at once
             sdo_write(master, i, 0x1401, 1, "I", 0x80000300 + i)

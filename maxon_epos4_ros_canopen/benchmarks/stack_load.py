@@ -16,7 +16,10 @@ CSP, a new target for every axis every 10 ms cycle; no ROS). The figures:
   (``/proc/PID/task/TID/status``), by thread name;
 * the CPU the two processes take, read as the capacity a pure-Python loop
   loses beside them. Per-process CPU accounting is coarse in user-mode
-  Linux, so capacity is what is compared.
+  Linux, so capacity is what is compared;
+* beside it, how the kernel splits CPU time between the simulator and the
+  driver (``/proc/PID/stat``; sampled at the timer tick in user-mode Linux,
+  so the split, not the total, is what it tells).
 
 Where a system call or a context switch costs a hundred times what it
 costs natively (user-mode Linux: every one is a ptrace round trip), the
@@ -131,6 +134,16 @@ def switches(pid: int) -> Dict[str, Tuple[int, int]]:
     return out
 
 
+def cpu_ticks(pid: int) -> int:
+    """User plus system CPU time of process ``pid`` so far, in clock ticks."""
+    try:
+        with open("/proc/%d/stat" % pid) as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0
+    return int(fields[11]) + int(fields[12])  # utime, stime (fields 14 and 15)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--axes", type=int, default=2)
@@ -160,7 +173,9 @@ def main() -> int:
         names: Dict[str, Dict[str, str]] = {"sim": {}, "driver": started["threads"]}
         time.sleep(1.0)  # settle: targets moving
         before = {"sim": switches(sim.pid), "driver": switches(driver.pid)}
+        ticks0 = {"sim": cpu_ticks(sim.pid), "driver": cpu_ticks(driver.pid)}
         loaded = capacity(args.seconds)
+        ticks = {"sim": cpu_ticks(sim.pid) - ticks0["sim"], "driver": cpu_ticks(driver.pid) - ticks0["driver"]}
         after = {"sim": switches(sim.pid), "driver": switches(driver.pid)}
     finally:
         for p in (driver, sim):
@@ -186,6 +201,9 @@ def main() -> int:
         total, total * costs["thread_handoff_us"] / 1000.0, PERIOD * 1000))
     print("  CPU taken by driver and simulator: %.0f%% of one CPU (a loop's capacity %.3g/s alone, %.3g/s beside)"
           % (100.0 * (1.0 - loaded / alone), alone, loaded))
+    hz = os.sysconf("SC_CLK_TCK")
+    print("  the kernel's accounting: simulator %.0f%%, driver %.0f%% of one CPU" % (
+        100.0 * ticks["sim"] / hz / args.seconds, 100.0 * ticks["driver"] / hz / args.seconds))
     return 0
 
 

@@ -9,7 +9,9 @@ Every timer and every wait of the driver and the simulator goes through a
   scheduler. Periodic tasks (the driver's cycle, the SYNC and heartbeat
   producers, the simulator's tick) and timers are events on its time line;
   received frames are delivered by a pump that reads each registered
-  python-can bus with ``recv(0)`` and hands every frame to its listeners.
+  python-can bus with ``recv(0)`` and hands every frame to its listeners
+  (or, for a task that reads a bus itself, keeps it for the task's
+  ``frame_reader``).
   After each event every frame sent meanwhile is delivered (and those sent
   in answer, until the buses are quiet) before the next event runs. A wait
   (``wait_until``) runs the events in time order until its condition holds
@@ -120,6 +122,12 @@ class Clock:
         ``can.Notifier`` or its stand-in: add_listener, stop, exception)."""
         raise NotImplementedError
 
+    def frame_reader(self, bus: can.BusABC, name: str) -> "FrameReader":
+        """What a periodic task named ``name`` reads ``bus``'s received
+        frames with, itself, one at a time without waiting: no thread of
+        its own (see FrameReader)."""
+        raise NotImplementedError
+
     def run_each(self, fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> None:
         """``fn(item)`` for every item, up to ``workers`` at once; returns
         when all have. ``fn`` must not raise."""
@@ -197,6 +205,16 @@ class _CyclicTask(Task):
         return thread is not None and thread.is_alive()
 
 
+class FrameReader:
+    """``recv()``: the next frame received and not read yet, or None; a
+    frame's ``timestamp`` is when it reached this host (wall clock).
+    ``close()``: read no more (the bus itself stays open)."""
+
+    def __init__(self, recv: Callable[[], Optional[can.Message]], close: Callable[[], None] = lambda: None) -> None:
+        self.recv = recv
+        self.close = close
+
+
 class RealClock(Clock):
     """Real time: threads and blocking waits."""
 
@@ -246,6 +264,9 @@ class RealClock(Clock):
 
     def notifier(self, bus: can.BusABC, listeners: List[can.Listener], timeout: float = 1.0) -> Any:
         return can.Notifier(bus, listeners, timeout)
+
+    def frame_reader(self, bus: can.BusABC, name: str) -> FrameReader:
+        return FrameReader(lambda: bus.recv(0))
 
     def run_each(self, fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> None:
         if len(items) <= 1:
@@ -551,6 +572,17 @@ class SteppedClock(Clock):
 
     def notifier(self, bus: can.BusABC, listeners: List[can.Listener], timeout: float = 1.0) -> Any:
         return StepNotifier(self, bus, listeners)
+
+    def frame_reader(self, bus: can.BusABC, name: str) -> FrameReader:
+        """The pump receives ``bus``'s frames as they are sent (stamped
+        then, as a socket does) and keeps them until the task reads them;
+        stalling ``name`` holds them back as it holds the task."""
+        waiting: Deque[can.Message] = collections.deque()
+        self.add_pump(bus, waiting.append, name)
+
+        def recv() -> Optional[can.Message]:
+            return waiting.popleft() if waiting else None
+        return FrameReader(recv, lambda: self.remove_pump(bus))
 
     def run_each(self, fn: Callable[[Any], Any], items: Sequence[Any], workers: int) -> None:
         # one after the other: on virtual time their transfers cost nothing

@@ -9,6 +9,7 @@ from typing import List
 import can
 import canopen
 
+from maxon_epos4_ros_canopen.clock import Clock
 from maxon_epos4_ros_canopen.sim import NodeConfig  # noqa: F401 (the tests take it from here)
 
 _PKG = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -79,3 +80,20 @@ def spin_up(node: canopen.RemoteNode, rig, rpm: int = 1000) -> None:
     enable(node, 3)
     node.sdo[0x60FF].raw = rpm
     assert rig.wait(lambda: node.sdo[0x606C].raw > 0.95 * rpm)
+
+
+WALL_OFFSET = 1000.0  # ScriptedClock's wall clock: its monotonic time plus this
+
+
+class ScriptedClock(Clock):
+    """Time a test script moves itself (``t``), for a simulator loop whose
+    receives the script's bus answers at scripted times."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def now(self) -> float:
+        return self.t
+
+    def wall(self) -> float:
+        return self.t + WALL_OFFSET

@@ -257,6 +257,51 @@ def test_a_stalled_reader_gets_its_frames_at_the_end_stamped_when_they_came():
     b.shutdown()
 
 
+def test_a_frame_reader_keeps_frames_stamped_when_they_came_until_its_task_reads_them():
+    """What a task that reads its bus itself (the driver's cycle) gets:
+    each frame stamped when it came, held while the task is stalled, none
+    after close."""
+    clock = SteppedClock()
+    a, b = _virtual_pair("clock_reader_%d" % id(clock))
+    reader = clock.frame_reader(b, "cycle")
+    read = []
+
+    def cycle():
+        msg = reader.recv()
+        while msg is not None:
+            read.append((round(clock.now(), 6), msg.arbitration_id, round(msg.timestamp - clock.EPOCH, 6)))
+            msg = reader.recv()
+    task = clock.periodic("cycle", 0.01, cycle)
+    clock.after(0.003, lambda: a.send(can.Message(arbitration_id=0x181, is_extended_id=False)))
+    clock.advance(0.015)
+    assert read == [(0.01, 0x181, 0.003)]
+    assert clock.stall("cycle", 0.03) == 2  # the task and its reader
+    clock.after(0.001, lambda: a.send(can.Message(arbitration_id=0x182, is_extended_id=False)))
+    clock.advance(0.02)
+    assert read == [(0.01, 0x181, 0.003)]
+    clock.advance(0.02)
+    assert read[1] == (0.045, 0x182, 0.016)
+    reader.close()
+    a.send(can.Message(arbitration_id=0x183, is_extended_id=False))
+    clock.advance(0.02)
+    assert reader.recv() is None and len(read) == 2
+    task.stop()
+    a.shutdown()
+    b.shutdown()
+
+
+def test_the_real_clocks_frame_reader_reads_without_waiting():
+    a, b = _virtual_pair("clock_real_reader")
+    reader = REAL.frame_reader(b, "cycle")
+    assert reader.recv() is None
+    a.send(can.Message(arbitration_id=0x181, is_extended_id=False))
+    msg = reader.recv()
+    assert msg is not None and msg.arbitration_id == 0x181
+    assert reader.recv() is None
+    a.shutdown()
+    b.shutdown()
+
+
 def test_frame_order_interleaves_readers_but_keeps_each_readers_order():
     import random
     orders = set()

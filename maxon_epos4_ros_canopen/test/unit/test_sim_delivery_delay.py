@@ -15,31 +15,18 @@ import can
 import pytest
 
 from maxon_epos4_ros_canopen.can_device import DeliveryDelay
-from maxon_epos4_ros_canopen.clock import Clock
 from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
-from sim_support import NODE1
+from sim_support import NODE1, WALL_OFFSET, ScriptedClock
 
 CONSUMER_MS = 150          # the shipped examples' (3 periods of a 20 Hz heartbeat)
 HEARTBEAT_PERIOD = 0.050
 TICK = 0.005
-WALL_OFFSET = 1000.0       # the stamps are wall-clock times
 # This host once made a SYNC readable EVIDENCE_DELAY after its send (the
 # heartbeat behind it too: 110 ms after the one before, within the consumer
 # time), later a heartbeat DELIVERY_DELAY after its send: 170 ms after the
 # one before, more than the consumer time, though it was sent on time.
 EVIDENCE_DELAY = 0.090
 DELIVERY_DELAY = 0.120
-
-
-class ScriptedClock(Clock):
-    def __init__(self) -> None:
-        self.t = 100.0
-
-    def now(self) -> float:
-        return self.t
-
-    def wall(self) -> float:
-        return self.t + WALL_OFFSET
 
 
 class LateDeliveryBus(can.BusABC):

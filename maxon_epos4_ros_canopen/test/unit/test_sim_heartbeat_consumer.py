@@ -288,12 +288,12 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     spin_up(node, rig)
     rig.send(0x000, bytes([0x01, 1]))  # operational: every SYNC advances the drive
     assert rig.wait(lambda: rig.sim.nodes[1].nmt_state == 0x05)
-    handle = rig.sim.handle
+    handle = rig.sim._route  # where the loop hands each received frame to the nodes
 
-    def slow_handle(msg, now):  # a starved loop: BEHIND_HANDLE_S for every frame
+    def slow_handle(cob, data, remote, now):  # a starved loop: BEHIND_HANDLE_S for every frame
         time.sleep(BEHIND_HANDLE_S)
-        handle(msg, now)
-    rig.sim.handle = slow_handle
+        handle(cob, data, remote, now)
+    rig.sim._route = slow_handle
     heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
     sync = can.Message(arbitration_id=0x080, data=b"", is_extended_id=False)
     before, after = [], []   # time.time() around each heartbeat's send (the bus stamps it in between)
@@ -314,7 +314,7 @@ def test_a_simulator_that_falls_behind_judges_the_master_by_when_its_heartbeats_
     assert max(gaps) < BEHIND_CONSUMER_MS / 1000.0, (
         "the host held this thread %.0f ms between two heartbeats: a real loss of the master" % (max(gaps) * 1000))
     assert rig.wait(lambda: rig.sim.frames_in >= start + sent, timeout=60.0)  # the loop worked off its backlog
-    rig.sim.handle = handle
+    rig.sim._route = handle
     assert rig.sim.read(1, 0x6041) & 0x6F == 0x27, "the drive left operation enabled"
     emcys = [m for m in rig.handled() if _is_emcy(m)]
     assert not emcys, "EMCY 0x8130 while the master's heartbeats were on the bus"
@@ -395,14 +395,14 @@ def test_a_stall_while_the_simulator_handles_a_frame_is_no_silence_of_the_master
     import time
 
     master = _operational_under_a_master(rig)
-    handle, receive = rig.sim.handle, rig.sim._receive
+    handle, receive = rig.sim._route, rig.sim._receive
     heartbeat = can.Message(arbitration_id=0x700 + MASTER, data=b"\x05", is_extended_id=False)
     after_stall = []
     resumed = [0.0]
 
-    def host_stalls_in_a_heartbeat(msg, now):
-        handle(msg, now)
-        if not after_stall and msg.arbitration_id == 0x700 + MASTER:
+    def host_stalls_in_a_heartbeat(cob, data, remote, now):
+        handle(cob, data, remote, now)
+        if not after_stall and cob == 0x700 + MASTER:
             master.stop()
             after_stall.append("stalled")
             # The stall itself, on purpose (not a wait for anything), as in
@@ -416,8 +416,8 @@ def test_a_stall_while_the_simulator_handles_a_frame_is_no_silence_of_the_master
                 resumed[0] = time.time()
                 rig.raw.send(heartbeat)
         return receive(timeout)
-    rig.sim.handle = host_stalls_in_a_heartbeat
+    rig.sim._route = host_stalls_in_a_heartbeat
     rig.sim._receive = heartbeat_one_pass_later
     assert rig.wait(lambda: len(after_stall) > 20)
-    rig.sim.handle, rig.sim._receive = handle, receive
+    rig.sim._route, rig.sim._receive = handle, receive
     _lost_no_earlier_than_a_consumer_time_after(rig, resumed[0])

@@ -62,18 +62,25 @@ class Driver:
     def __init__(self, config: DriverConfig, bus: Optional[can.BusABC] = None, *,
                  boot_timeout: float = 5.0, state_timeout: float = 5.0,
                  homing_timeout: float = 60.0, sdo_timeout: float = 1.0, cycle_join_timeout: float = 5.0,
-                 shutdown_timeout: Optional[float] = None, clock: Optional[Clock] = None) -> None:
+                 shutdown_timeout: Optional[float] = None, clock: Optional[Clock] = None,
+                 pdo_bus: Optional[can.BusABC] = None) -> None:
         """``clock``: every timer and wait of the driver (real time unless
         given: a test's stepped clock runs the driver on virtual time).
         ``shutdown_timeout``: the deadline of shutdown and close as a whole
-        (the configuration's ``timeouts/shutdown`` unless given)."""
+        (the configuration's ``timeouts/shutdown`` unless given).
+        ``pdo_bus``: with ``bus``, a bus that carries the drives' TxPDOs
+        and SYNC (and may carry more), which the cycle reads itself
+        (driver/cycle_reception.py); without it a given bus's TxPDOs come
+        through the notifier thread. A bus the driver opens itself gets
+        its own on SocketCAN (and python-can's virtual bus in stepped
+        runs)."""
         self.config = config
         self._timeouts = Timeouts(sdo=sdo_timeout, boot=boot_timeout, state=state_timeout, homing=homing_timeout,
                                   cycle_join=cycle_join_timeout,
                                   shutdown=config.shutdown_timeout if shutdown_timeout is None else shutdown_timeout)
         self._nodes = NodeTable(config)
         inbox: "queue.SimpleQueue[Any]" = queue.SimpleQueue()  # the cycle's; the link posts to it
-        self._link = Link(config, self._nodes, self._timeouts, inbox.put, bus, as_clock(clock))
+        self._link = Link(config, self._nodes, self._timeouts, inbox.put, bus, as_clock(clock), pdo_bus)
         self._cycle = ControlCycle(self, self._nodes, self._link, self._timeouts, inbox)
         self._access = ObjectAccess(self._nodes, self._link, self._cycle, self._timeouts)
         self._lifecycle = Lifecycle(self._nodes, self._link, self._cycle, self._access, self._timeouts)
@@ -274,7 +281,10 @@ class Driver:
         snap = self._cycle.snapshot
         initialized = self.initialized
         # how long the latest frame read had waited unread: a loaded host
-        receive_lag_ms = int(round(max(0.0, self._link.receive_clock.lag()) * 1000))
+        link = self._link
+        reception = link.reception
+        lag = max(link.receive_clock.lag(), reception.lag() if reception is not None else 0.0)
+        receive_lag_ms = int(round(max(0.0, lag) * 1000))
         # cycles that missed their SYNC period, since start (the host too slow)
         cycles_late = self._cycle.overruns
         out = []

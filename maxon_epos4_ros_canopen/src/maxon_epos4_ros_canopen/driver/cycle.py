@@ -5,8 +5,9 @@ has the picture):
 
 * The cycle thread runs every ``sync/update_ms``: at the top of each cycle
   it drains the inbox (commands, state requests from the services,
-  heartbeats and EMCYs from the CAN notifier), reads the latest TPDO
-  frames, publishes an immutable snapshot, runs the cycle callbacks (the
+  heartbeats and EMCYs from the CAN notifier), reads the TPDO and SYNC
+  frames waiting in its own receiver (cycle_reception.py), reads the
+  latest TPDO frames, publishes an immutable snapshot, runs the cycle callbacks (the
   trajectory controller), and sends the RxPDOs and SYNC. It owns the axes
   and ``ControlCycle``'s cycle state: ``axes``/``axis``/``by_node_id``,
   ``cycle_no``, ``snapshot`` (published whole), ``overruns``,
@@ -19,8 +20,9 @@ has the picture):
   state-changing service at a time under the service lock; they own the
   link (link.py), the SDO clients, the configuration caches, and talk to
   the axes only through the inbox, and wait on snapshots.
-* canopen's notifier thread only hands frames over: TPDOs to the receiver's
-  latest-frame slots, everything else to the inbox.
+* canopen's notifier thread only hands frames over: heartbeats and EMCYs
+  to the inbox, and TPDOs to the receiver's latest-frame slots on an
+  adapter where the cycle has no receiver of its own.
 * ``limits`` and ``initial_env`` are written by whoever sets them (a
   service, ``set_limits``) as whole immutable mappings; the cycle learns
   of new limits through the inbox.
@@ -54,6 +56,7 @@ from ..result import Result, fail, ok
 from . import realtime
 from .axis import Axis
 from .check import check_command
+from .cycle_reception import CYCLE_TASK
 from .snapshot import AxisSnapshot, env_for_check, initial_snapshot
 from .inbox import (Attach, ClearBusError, ClearError, Command, Detach, Emcy, Heartbeat, Hold, Homing,
                     ModeConfirmed, Ready, RestartSync, SetHeartbeat, SetLimits, SetMode, SetOutput, ShuttingDown,
@@ -304,11 +307,16 @@ class ControlCycle:
                 break
         for axis in axes:
             axis.limits = self.limits[axis.name]
+        reception = self._link.reception
+        if reception is not None:
+            # what came since the link opened, whole: the first cycle then
+            # starts from the latest frames, not from a budget's worth of old ones
+            reception.poll(self.clock.now(), limit=1 << 30)
         # the clock runs the cycle: a thread of its own (with its own stop
         # event, so a thread that ends late never takes a later start's
         # for its own), or a stepped clock's event
         self._next_t = self.clock.now()
-        self.thread = self.clock.periodic("epos4_driver_cycle", self._period, self._run_once,
+        self.thread = self.clock.periodic(CYCLE_TASK, self._period, self._run_once,
                                           on_thread_start=self._on_thread_start)
 
     def stop(self, join_timeout: Optional[float] = None) -> bool:
@@ -415,6 +423,9 @@ class ControlCycle:
                 log.exception("driver inbox failed")
         link = self._link
         receiver = link.receiver
+        reception = link.reception
+        if reception is not None:
+            reception.poll(now)
         period, pdo_timeout = self._period, self._pdo_timeout
         reception = link.receive_clock.progress
         if now - self._wall_offset_at >= WALL_OFFSET_REFRESH:

@@ -4,9 +4,12 @@ heartbeat and SYNC producers.
 
 ``Link``'s fields are written by the service holding the driver's service
 lock (open, close, SYNC start and stop); canopen's notifier thread only
-hands frames over (TPDOs to the receiver's latest-frame slots, heartbeats
-and EMCYs to the cycle's inbox) and counts foreign frames. The cycle reads
-``bus``, ``receiver``, ``receive_clock`` and the SYNC fields."""
+hands frames over (heartbeats and EMCYs to the cycle's inbox, SDO answers
+to their clients) and counts foreign frames. TxPDOs and SYNC frames go to a
+receiver the cycle reads itself (``reception``, cycle_reception.py), or,
+on an adapter that cannot open one, through the notifier to the
+receiver's latest-frame slots. The cycle reads ``bus``, ``receiver``,
+``reception``, ``receive_clock`` and the SYNC fields."""
 from __future__ import annotations
 
 import logging
@@ -16,11 +19,13 @@ from typing import Any, Callable, Dict, Mapping, Optional
 
 import can
 import canopen
+from can.interfaces.virtual import VirtualBus
 
 from ..can_device import max_receive_lag
 from ..clock import REAL, Clock
 from ..config_schema import DriverConfig
 from .bus import SYNC_COB_ID, HeartbeatProducer, ReceiveClock, SyncProducer, is_socketcan, open_bus, unread_frames
+from .cycle_reception import CYCLE_TASK, BusReceiver, CycleReception, RawCanReceiver
 from .inbox import Emcy, Heartbeat
 from .nodes import InitError, NodeTable, Timeouts
 from .pdo import TpdoReceiver, enabled_maps, sync_driven
@@ -104,7 +109,9 @@ class Link:
 
     def __init__(self, config: DriverConfig, nodes: NodeTable, timeouts: Timeouts,
                  post: Callable[[Any], None], external_bus: Optional[can.BusABC] = None,
-                 clock: Clock = REAL) -> None:
+                 clock: Clock = REAL, pdo_bus: Optional[can.BusABC] = None) -> None:
+        """``pdo_bus``: with ``external_bus``, a bus that carries the
+        drives' TxPDOs and SYNC to the cycle (see cycle_reception.py)."""
         self.config = config
         # Every timer and wait of the driver's parts: real time, or a test's
         # stepped clock (clock.py); the parts take it from here.
@@ -113,10 +120,12 @@ class Link:
         self._timeouts = timeouts
         self._post = post  # to the cycle's inbox: heartbeats and EMCYs
         self.external_bus = external_bus
+        self.pdo_bus = pdo_bus
         self.bus: Optional[can.BusABC] = None
         self.network: Optional[canopen.Network] = None
         self.sdo: Mapping[str, GuardedSdoClient] = MappingProxyType({})
         self.receiver: Optional[TpdoReceiver] = None
+        self.reception: Optional[CycleReception] = None  # None: TxPDOs come through the notifier
         self.receive_clock = ReceiveClock(clock=clock)  # written by the notifier thread only
         self.boot: Dict[int, threading.Event] = {}
         self.heartbeat: Optional[HeartbeatProducer] = None
@@ -152,9 +161,11 @@ class Link:
         self.receiver = receiver = TpdoReceiver({m.cob_id: m.length for node in self._nodes.values()
                                                  for m in enabled_maps(node.plan.tx)}, clock.times,
                                                 [c for node in self._nodes.values() for c in sync_driven(node.plan.tx)])
-        for cob in receiver.cob_ids:
-            network.subscribe(cob, receiver.on_frame)
-        network.subscribe(SYNC_COB_ID, receiver.on_sync)  # the kernel's SYNC, or another producer's
+        self.reception = self._open_cycle_reception(receiver)
+        if self.reception is None:
+            for cob in receiver.cob_ids:
+                network.subscribe(cob, receiver.on_frame)
+            network.subscribe(SYNC_COB_ID, receiver.on_sync)  # the kernel's SYNC, or another producer's
         if not self.config.bus.loopback:
             # With loopback off the driver never hears its own frames: one on
             # its RxPDO COB-IDs comes from another master. It is counted and
@@ -191,6 +202,33 @@ class Link:
             self.heartbeat = HeartbeatProducer(self.bus, self.config.heartbeat, self.clock)
             self.heartbeat.start()
 
+    def _open_cycle_reception(self, receiver: TpdoReceiver) -> Optional[CycleReception]:
+        """The cycle's own receiver of TxPDOs and SYNC where the bus allows
+        a second one (cycle_reception.py); None: the notifier's path."""
+        ids = receiver.cob_ids + (SYNC_COB_ID,)
+        bus, clock = self.bus, self.clock
+        source: Any = None
+        try:
+            if self.pdo_bus is not None:
+                source = BusReceiver(clock.frame_reader(self.pdo_bus, CYCLE_TASK), ids)
+            elif self.external_bus is not None:
+                return None  # a caller's bus: no second receiver on it
+            elif is_socketcan(bus) and not clock.stepped:
+                source = RawCanReceiver(bus.channel, ids)
+            elif isinstance(bus, VirtualBus) and clock.stepped:
+                # Stepped runs take the cycle's own receiver; on the wall
+                # clock python-can's virtual bus keeps the notifier's path
+                # (that of adapters without a second receiver), so that the
+                # fast suite's real-time tests run that path too.
+                second = can.Bus(interface="virtual", channel=bus.channel_id)
+                source = BusReceiver(clock.frame_reader(second, CYCLE_TASK), ids, second.shutdown)
+            else:
+                return None
+        except (OSError, can.CanError) as e:
+            log.warning("no receiver of its own for the cycle (%s): TxPDOs come through the notifier", e)
+            return None
+        return CycleReception(source, receiver, clock, max_receive_lag(bus))
+
     def _filter_in_kernel(self, network: canopen.Network) -> None:
         """On a SocketCAN bus of its own, the driver has the kernel drop
         every frame nobody here subscribed to: a busy or hostile bus then
@@ -222,6 +260,9 @@ class Link:
     def _close_network(self) -> None:
         network, self.network = self.network, None
         self.sdo = MappingProxyType({})
+        reception, self.reception = self.reception, None
+        if reception is not None:
+            reception.close()
         if network is not None and network.notifier is not None:
             # the notifier's reader wakes every NOTIFIER_CYCLE: wait longer
             # than that, or shutting the bus below it pulls its socket away

@@ -7,11 +7,12 @@ and wakes every waiter for each frame. Here an RxPDO is encoded from the
 values the axis commands, nothing else, and a TxPDO is decoded only when
 its length matches its mapping.
 
-The receiver is the one place where a frame crosses from the CAN notifier
-thread to the cycle: each TPDO has a slot holding the latest (bytes,
-monotonic time) tuple. The notifier replaces the tuple; the cycle reads it.
-A tuple is immutable and the swap of one reference is atomic, so this is a
-latest-value message, not shared mutable state.
+The receiver holds the latest frame of each TPDO: a slot per COB-ID with
+an immutable (bytes, read, arrived) tuple. Where the cycle reads its TPDOs
+itself (cycle_reception.py) the cycle thread alone writes and reads it.
+Elsewhere the CAN notifier thread fills it and the cycle reads it: the swap
+of one reference to an immutable tuple is atomic, so that is a latest-value
+message, not shared mutable state.
 """
 from __future__ import annotations
 
@@ -89,21 +90,23 @@ def _read_on_arrival() -> Tuple[float, float]:
 
 
 class TpdoReceiver:
-    """Latest frame of each TPDO COB-ID, filled by the CAN notifier thread.
+    """Latest frame of each TPDO COB-ID, filled by one thread: the cycle's
+    reception (``put``, ``sync_heard``) or the CAN notifier (``on_frame``,
+    ``on_sync``, canopen subscriber callbacks).
 
     A frame whose length is not its mapping's is counted in ``rejected``
-    (written by the notifier thread alone) and never stored: stored, a short
+    (written by the filling thread alone) and never stored: stored, a short
     forged frame would take the place of the drive's last good one and, if
     the drive's next frame came before the cycle read it, go unnoticed.
 
     A SYNC-driven TPDO (transmission type 0..240) comes at most once
     between two consecutive SYNCs; a second frame on its COB-ID in one SYNC
     period is a conflict (another node on that COB-ID, or a forger) and is
-    counted in ``conflicts`` (notifier thread alone). Which period a frame
-    belongs to is told by arrival times, not by the order the notifier
+    counted in ``conflicts`` (filling thread alone). Which period a frame
+    belongs to is told by arrival times, not by the order the filling thread
     happens to handle things in: a SYNC's time comes from ``sync_sent`` (the
     cycle, for the SYNCs it sends itself, which the bus does not echo back
-    to their sender) or ``on_sync`` (a SYNC heard on the bus: the kernel's
+    to their sender) or ``sync_heard`` / ``on_sync`` (a SYNC heard on the bus: the kernel's
     broadcast manager or another producer). Until a SYNC is known, and for
     TPDOs sent on an event timer or an event (254, 255), nothing is counted.
     """
@@ -116,14 +119,14 @@ class TpdoReceiver:
         self.slots: Dict[int, Optional[Frame]] = {c: None for c in self.cob_ids}
         self.rejected: Dict[int, int] = {c: 0 for c in self.cob_ids}
         self.conflicts: Dict[int, int] = {c: 0 for c in self.cob_ids}
-        # rejected plus conflicts, all COB-IDs (notifier thread alone): a
+        # rejected plus conflicts, all COB-IDs (filling thread alone): a
         # reader that saw this number unchanged has no count to look up
         self.anomalies = 0
         self._clock = clock  # (when the frame being handled was read, when it arrived)
-        # per SYNC-driven COB-ID, when its last well-formed frame arrived (notifier thread)
+        # per SYNC-driven COB-ID, when its last well-formed frame arrived (filling thread)
         self._arrived: Dict[int, float] = {c: -math.inf for c in sync_driven if c in self.lengths}
         # Times of recent SYNCs, newest first, each tuple replaced whole by
-        # its one writer: the cycle (sent) and the notifier (heard).
+        # its one writer: the cycle (sent) and the filling thread (heard).
         self._sent: Tuple[float, ...] = ()
         self._heard: Tuple[float, ...] = ()
 
@@ -134,7 +137,11 @@ class TpdoReceiver:
 
     def on_sync(self, _can_id: int, _data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback for SYNC frames heard on the bus."""
-        self._heard = (self._clock()[1],) + self._heard[:_SYNC_HISTORY - 1]
+        self.sync_heard(self._clock()[1])
+
+    def sync_heard(self, arrived: float) -> None:
+        """A SYNC heard on the bus arrived at monotonic ``arrived``."""
+        self._heard = (arrived,) + self._heard[:_SYNC_HISTORY - 1]
 
     def last_sync_heard(self) -> float:
         """When the latest SYNC heard on the bus arrived (-inf: none yet)."""
@@ -154,15 +161,20 @@ class TpdoReceiver:
 
     def on_frame(self, can_id: int, data: Any, _timestamp: float) -> None:
         """canopen.Network subscriber callback: never raises."""
+        read_at, arrived = self._clock()
+        self.put(can_id, data, read_at, arrived)
+
+    def put(self, can_id: int, data: Any, read_at: float, arrived: float) -> None:
+        """A frame on one of ``cob_ids``, read at ``read_at`` after it
+        arrived at ``arrived`` (monotonic). Never raises for a frame of any
+        length."""
         if len(data) != self.lengths[can_id]:
             self.rejected[can_id] += 1
             self.anomalies += 1  # after the count: a reader that sees this sees the count
             return
-        times = self._clock()
-        self.slots[can_id] = (bytes(data),) + times
+        self.slots[can_id] = (bytes(data), read_at, arrived)
         last = self._arrived.get(can_id)
         if last is not None:
-            arrived = times[1]
             if last >= self._period_start(arrived) > -math.inf:
                 self.conflicts[can_id] += 1
                 self.anomalies += 1

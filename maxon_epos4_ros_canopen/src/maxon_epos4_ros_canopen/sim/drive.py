@@ -27,6 +27,9 @@ from .pdo import Pdo, PdoSet
 from .sdo import SdoServer
 
 Transport = Callable[[int, bytes, bool], None]
+# the states with the power stage on, and those of them that ramp to a stop
+_POWERED = frozenset((State.OPERATION_ENABLED, State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE))
+_RAMPING = frozenset((State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE))
 
 NMT_INITIALISING, NMT_STOPPED, NMT_OPERATIONAL, NMT_PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F
 SUPPORTED_MODES = frozenset(int(m) for m in OperationMode)
@@ -470,59 +473,72 @@ class VirtualEpos4:
                 self.next_heartbeat = now + self.heartbeat_period
         cycles = max(1, int(math.ceil(dt / CONTROL_PERIOD - 1e-9)))
         h = dt / cycles
-        for i in range(cycles):
-            self._motion(h, now - (cycles - 1 - i) * h)
+        if self.state not in _POWERED and abs(self.motor.velocity) < mm.STANDSTILL_RPM:
+            # Power stage off, rotor at rest: every control cycle would
+            # compute the same (nothing moves, no state changes), so one
+            # stands for all of them.
+            cycles = 1
+        self._cycles(cycles, h, now)
         self._publish(now)
         if self.nmt_state == NMT_OPERATIONAL and not self.is_silent(now):
             self._event_tpdos(now)
 
-    def _motion(self, dt: float, now: float) -> None:
-        """One control cycle: the demand of the mode or of a stop ramp, then the motor's loops."""
-        state = self.state
+    def _cycles(self, cycles: int, h: float, now: float) -> None:
+        """``cycles`` control cycles of ``h`` s up to ``now``. Each: the
+        demand of the mode or of a stop ramp, the motor's loops, then the
+        supervision (following error, software limits) while operation is
+        enabled. Written as one loop, as calls and look-ups cost more than
+        the arithmetic; within a tick only the drive runs, so what only
+        the master writes (the controlword, the supervision objects) is
+        read once."""
         m = self.motor
         demand = self.demand
-        stopping = state == State.OPERATION_ENABLED and self.stopping is not None
-        ramp: Optional[StopRamp] = None
-        if state == State.OPERATION_ENABLED and not stopping:
-            loop = self.active.step(dt, now, bool(self.last_cw & cia402.CW_HALT))
-        elif stopping or state in (State.QUICK_STOP_ACTIVE, State.FAULT_REACTION_ACTIVE):
-            ramp = StopRamp.for_state(state, stopping, self.store)
-            loop = ramp.step(dt, demand, self.store, m.inc_per_s_per_rpm)
-        else:
-            loop = mm.OFF
-        m.step(dt, loop, demand.position - self.offset, demand.velocity, demand.current,
-               demand.acceleration if loop == mm.POSITION else 0.0)
-        demand.acceleration = 0.0
-        # The ramp ends, and a power stage goes off, only with the rotor at
-        # rest after this step.
-        if ramp is not None and ramp.done(demand, m):
-            if stopping:
-                self.state, self.stopping = self.stopping, None  # transition 8 / 5 completes
-            elif state == State.FAULT_REACTION_ACTIVE:
-                self.state = State.FAULT  # transition 14
-            elif not ramp.stays_in_quick_stop:
-                self.state = State.SWITCH_ON_DISABLED  # transition 12 (automatic)
+        store = self.store
+        halt = bool(self.last_cw & cia402.CW_HALT)
+        window = store.get(0x6065, 0, WINDOW_OFF)
+        lo, hi = position_limits(store)
+        for i in range(cycles):
+            t = now - (cycles - 1 - i) * h
+            state = self.state
+            ramp: Optional[StopRamp] = None
+            if state == State.OPERATION_ENABLED and self.stopping is None:
+                loop = self.active.step(h, t, halt)
+            elif state in _RAMPING or state == State.OPERATION_ENABLED:  # stopping
+                stopping = state == State.OPERATION_ENABLED
+                ramp = StopRamp.for_state(state, stopping, store)
+                loop = ramp.step(h, demand, store, m.inc_per_s_per_rpm)
             else:
-                self.quick_stop_done = True
-        if loop == mm.OFF:
-            demand.position, demand.velocity = self.position, 0.0
-        elif loop != mm.POSITION:
-            demand.position = self.position  # velocity/torque control: demand follows actual
-        if state == State.OPERATION_ENABLED:
-            self._supervise(now)
+                loop = mm.OFF
+            m.cycle(h, loop, demand.position - self.offset, demand.velocity, demand.current,
+                    demand.acceleration if loop == mm.POSITION else 0.0)
+            demand.acceleration = 0.0
+            if ramp is not None and ramp.done(demand, m):
+                self._ramp_done(state, ramp)
+            if loop == mm.OFF:
+                demand.position, demand.velocity = m.position + self.offset, 0.0
+            elif loop != mm.POSITION:
+                demand.position = m.position + self.offset
+            if state == State.OPERATION_ENABLED:  # _supervise
+                active = self.active
+                if active.position_controlled:
+                    error = abs(demand.position - (m.position + self.offset))
+                    self.following_error = window != WINDOW_OFF and error > window
+                    if self.following_error:
+                        self.raise_fault(epos4_errors.FOLLOWING_ERROR, t)
+                        continue
+                if not lo <= demand.position <= hi and active.software_limits:
+                    self.raise_fault(epos4_errors.SOFTWARE_POSITION_LIMIT, t)
 
-    def _supervise(self, now: float) -> None:
-        active = self.active
-        if active.position_controlled:
-            window = self.store.get(0x6065, 0, WINDOW_OFF)
-            error = abs(self.demand.position - self.position)
-            self.following_error = window != WINDOW_OFF and error > window
-            if self.following_error:
-                self.raise_fault(epos4_errors.FOLLOWING_ERROR, now)
-                return
-        lo, hi = position_limits(self.store)
-        if not lo <= self.demand.position <= hi and active.software_limits:
-            self.raise_fault(epos4_errors.SOFTWARE_POSITION_LIMIT, now)
+    def _ramp_done(self, state: State, ramp: StopRamp) -> None:
+        """A stop ramp that began in ``state`` has ended with the rotor at rest."""
+        if state == State.OPERATION_ENABLED:
+            self.state, self.stopping = self.stopping, None  # transition 8 / 5 completes
+        elif state == State.FAULT_REACTION_ACTIVE:
+            self.state = State.FAULT  # transition 14
+        elif not ramp.stays_in_quick_stop:
+            self.state = State.SWITCH_ON_DISABLED  # transition 12 (automatic)
+        else:
+            self.quick_stop_done = True
 
     # ------------------------------------------------------------ publish
     def _publish(self, now: float) -> None:
@@ -530,16 +546,17 @@ class VirtualEpos4:
         # served (the SDO server and PDO mapping look at the OD, not here).
         values = self.store.values
         m = self.motor
-        position = int(round(self.position))
-        velocity = int(round(m.velocity))
-        current = int(round(m.current * 1000.0))
-        torque = int(round(m.current * m.torque_constant / self.rated_torque * 1000.0))
-        demand = int(round(self.demand.position))
+        # round() of a float or an int is an int already
+        position = round(m.position + self.offset)
+        velocity = round(m.velocity)
+        current = round(m.current * 1000.0)
+        torque = round(m.current * m.torque_constant / self.rated_torque * 1000.0)
+        demand = round(self.demand.position)
         values[(0x6064, 0)] = position
         values[(0x6062, 0)] = demand
         values[(0x60F4, 0)] = demand - position
         values[(0x606C, 0)] = values[(0x30D3, 1)] = velocity
-        values[(0x606B, 0)] = int(round(self.demand.velocity))
+        values[(0x606B, 0)] = round(self.demand.velocity)
         values[(0x30D1, 1)] = values[(0x30D1, 2)] = values[(0x30D0, 0)] = current
         values[(0x6077, 0)] = values[(0x30D2, 1)] = torque
         values[(0x6061, 0)] = self.mode

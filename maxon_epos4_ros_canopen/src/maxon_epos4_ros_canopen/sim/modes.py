@@ -355,6 +355,9 @@ class CyclicMode(Mode):
 
     reports_following_error = True
 
+    def step(self, dt: float, now: float, halt: bool) -> int:
+        return self.follow(dt, now)  # halted or not: hold() is follow() (one call less a cycle)
+
     def status(self, cw: int) -> int:
         return cia402.SW_DRIVE_FOLLOWS_COMMAND
 
@@ -382,19 +385,18 @@ class CyclicSyncPosition(CyclicMode):
         self.last_sync = now
         self.t0 = now
 
-    def _interpolation_period(self) -> float:
-        value = self.store.get(0x60C2, 1, 0)
-        if value:
-            return value * 10.0 ** self.store.get(0x60C2, 2, -3)
-        return self.drive.sync_interval or 0.01
-
     def follow(self, dt: float, now: float) -> int:
-        period = self._interpolation_period()
+        # runs every control cycle: the store's dictionary read directly
+        values = self.store.values
+        value = values.get((0x60C2, 1), 0)
+        # the interpolation period
+        period = value * 10.0 ** values.get((0x60C2, 2), -3) if value else self.drive.sync_interval or 0.01
         frac = min(1.0, (now - self.t0) / period)
         demand = self.demand
-        demand.position = self.start + (self.goal - self.start) * frac
-        demand.velocity = (self.goal - self.start) / period / self.k if frac < 1.0 else 0.0
-        demand.velocity += self.store.get(0x60B1, 0, 0)
+        start, goal = self.start, self.goal
+        demand.position = start + (goal - start) * frac
+        demand.velocity = (goal - start) / period / self.k if frac < 1.0 else 0.0
+        demand.velocity += values.get((0x60B1, 0), 0)
         return mm.POSITION
 
 

@@ -103,6 +103,70 @@ class MotorModel:
         if mode == OFF and abs(self.velocity) < STANDSTILL_RPM:
             self.velocity = 0.0  # static friction holds a slow coasting rotor
 
+    def cycle(self, dt: float, mode: int, position_ref: float = 0.0, velocity_ref: float = 0.0,
+              current_ref: float = 0.0, acceleration_ref: float = 0.0) -> None:
+        """``step`` over one control cycle (the drive calls it every 2.5 ms
+        or less): the same arithmetic in the same order, with the loops
+        written out in one function, because the calls and attribute
+        look-ups cost more than the arithmetic. A longer ``dt`` goes to
+        ``step``."""
+        if dt / 0.0025 > 1.0:  # step would take more than one sub-step
+            self.step(dt, mode, position_ref, velocity_ref, current_ref, acceleration_ref)
+            return
+        velocity = self.velocity
+        if mode == OFF and abs(velocity) < STANDSTILL_RPM:
+            self.velocity = self.current = 0.0
+            return
+        h = dt  # step's one sub-step (steps = 1); back = dt - 1 * h below, as there
+        k = self.increments_per_turn / 60.0
+        if mode == POSITION:
+            back = dt - 1 * h
+            reference = position_ref - (velocity_ref - 0.5 * acceleration_ref * back) * back * k
+            velocity_cmd = velocity_ref - acceleration_ref * back + \
+                self.position_gain * (reference - self.position) / k
+            current = self._loop_current(velocity_cmd, acceleration_ref, velocity)
+        elif mode == VELOCITY:
+            current = self._loop_current(velocity_ref, 0.0, velocity)
+        elif mode == CURRENT:
+            limit = self.current_limit
+            current = current_ref if current_ref < limit else limit  # min(limit, current_ref)
+            current = current if current > -limit else -limit  # max(-limit, ...)
+            if abs(velocity) >= self.max_speed and current * velocity > 0:
+                current = self.friction * velocity * RPM_TO_RAD_S / self.torque_constant
+        else:
+            current = 0.0
+        self.current = current
+        # _integrate(h)
+        torque = self.torque_constant * current - self.friction * velocity * RPM_TO_RAD_S
+        new_velocity = velocity + torque / self.inertia * h / RPM_TO_RAD_S
+        if current == 0.0:
+            new_velocity -= math.copysign(min(abs(new_velocity), COAST_DECELERATION_RPM_S * h), new_velocity)
+            if new_velocity * velocity <= 0.0:
+                new_velocity = 0.0
+        position = self.position + 0.5 * (velocity + new_velocity) * h * k
+        self.blocked = False
+        if self.hard_stop_max is not None and position >= self.hard_stop_max:
+            position, self.blocked = self.hard_stop_max, True
+            new_velocity = min(new_velocity, 0.0)
+        if self.hard_stop_min is not None and position <= self.hard_stop_min:
+            position, self.blocked = self.hard_stop_min, True
+            new_velocity = max(new_velocity, 0.0)
+        if mode == OFF and abs(new_velocity) < STANDSTILL_RPM:
+            new_velocity = 0.0  # static friction holds a slow coasting rotor
+        self.position, self.velocity = position, new_velocity
+
+    def _loop_current(self, velocity_cmd: float, acceleration_ff: float, velocity: float) -> float:
+        """_velocity_loop's current for the rotor at ``velocity`` (not stored)."""
+        limit = self.max_speed
+        velocity_cmd = velocity_cmd if velocity_cmd < limit else limit  # min(limit, cmd)
+        velocity_cmd = velocity_cmd if velocity_cmd > -limit else -limit  # max(-limit, ...)
+        accel = ((velocity_cmd - velocity) / self.velocity_time_constant + acceleration_ff) * RPM_TO_RAD_S
+        torque = self.inertia * accel + self.friction * velocity * RPM_TO_RAD_S
+        current = torque / self.torque_constant
+        limit = self.current_limit
+        current = current if current < limit else limit
+        return current if current > -limit else -limit
+
     def _velocity_loop(self, velocity_cmd: float, acceleration_ff: float = 0.0) -> None:
         velocity_cmd = max(-self.max_speed, min(self.max_speed, velocity_cmd))
         accel = ((velocity_cmd - self.velocity) / self.velocity_time_constant + acceleration_ff) * RPM_TO_RAD_S

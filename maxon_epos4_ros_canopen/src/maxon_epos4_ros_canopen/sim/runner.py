@@ -26,6 +26,7 @@ from ..can_device import ArrivalClock, DeliveryDelay, max_receive_lag, open_devi
 from ..clock import Clock, Task
 from .drive import VirtualEpos4
 from .objects import initial_values, load_od
+from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, RawSocketcan, socketcan_socket
 
 log = logging.getLogger(__name__)
 # A loop pass woken this much later than it asked to be was stalled (s).
@@ -64,14 +65,20 @@ class Simulator:
     """Virtual EPOS4 nodes on ``bus``."""
 
     def __init__(self, bus: can.BusABC, nodes: List[NodeConfig], tick: float = 0.005,
-                 clock: Union[Callable[[], float], Clock] = time.monotonic):
+                 clock: Union[Callable[[], float], Clock] = time.monotonic, statistics: bool = False):
         """``clock``: a Clock (a stepped one runs the simulator on its
-        events), or a function of the time (the loop thread runs on it)."""
+        events), or a function of the time (the loop thread runs on it).
+        ``statistics``: keep ``busy_time`` and ``cpu_seconds`` (for
+        benchmarks: they cost three clock reads a loop pass)."""
         ids = [n.node_id for n in nodes]
         if len(set(ids)) != len(ids):
             raise ValueError("node ids must be unique: %s" % ids)
         self.bus = bus
+        # a SocketCAN bus is read and written on its socket directly (../rawcan.py)
+        sock = socketcan_socket(bus)
+        self._raw: Optional[RawSocketcan] = RawSocketcan(sock) if sock is not None else None
         self.tick_period = tick
+        self.statistics = statistics
         self.scheduler: Optional[Clock] = clock if isinstance(clock, Clock) and clock.stepped else None
         if isinstance(clock, Clock):
             wall = clock.wall
@@ -101,11 +108,11 @@ class Simulator:
         # what was queued when it was read; and it grows only while the
         # simulator runs and its time goes on. Tests wait on it, not sleep.
         self.ticks = 0
-        self.busy_time = 0.0
+        self.busy_time = 0.0  # wall time of the loop passes' work (with ``statistics``)
         self.bus_error: Optional[str] = None  # why receiving fails, while it does
         self.send_error: Optional[str] = None  # why sending fails, while it does
         self.frames_lost = 0  # frames that could not be sent
-        self.cpu_seconds = 0.0  # CPU time of the loop thread, for benchmarks
+        self.cpu_seconds = 0.0  # CPU time of the loop thread (with ``statistics``)
         self._cpu0 = 0.0
         self._calls: "queue.Queue[Tuple[Callable[[], Any], dict]]" = queue.Queue()
         self._stop = threading.Event()
@@ -134,10 +141,15 @@ class Simulator:
 
     # --------------------------------------------------------------- bus
     def _transmit(self, cob_id: int, data: bytes, remote: bool) -> None:
-        msg = can.Message(arbitration_id=cob_id, data=data, is_extended_id=False,
-                          is_remote_frame=remote, dlc=len(data) if not remote else 0)
         try:
-            self.bus.send(msg)
+            if self._raw is not None and len(data) <= 8:
+                try:
+                    self._raw.send(cob_id, data, remote)
+                except OSError as exc:  # as python-can reports it
+                    raise can.CanOperationError("Failed to transmit: %s" % exc.strerror, exc.errno) from None
+            else:
+                self.bus.send(can.Message(arbitration_id=cob_id, data=data, is_extended_id=False,
+                                          is_remote_frame=remote, dlc=len(data) if not remote else 0))
             self.frames_out += 1
         except can.CanError as exc:  # bus full or down: the frame is lost, as on a real bus
             self.frames_lost += 1
@@ -189,9 +201,11 @@ class Simulator:
         """Route one received frame."""
         if msg.is_extended_id or msg.is_error_frame:
             return
+        self._route(msg.arbitration_id, bytes(msg.data), msg.is_remote_frame, now)
+
+    def _route(self, cob: int, data: bytes, remote: bool, now: float) -> None:
+        """Route one received frame with an 11-bit identifier."""
         self.frames_in += 1
-        cob = msg.arbitration_id
-        data = bytes(msg.data)
         if cob == 0x000:
             if len(data) == 2:
                 for node in self.nodes.values():
@@ -202,7 +216,7 @@ class Simulator:
                 node.on_sync(now)
         else:
             for node in self._routes.get(cob, ()):
-                node.on_frame(cob, data, msg.is_remote_frame, now)
+                node.on_frame(cob, data, remote, now)
         if self._routes_dirty:
             self._rebuild_routes()
 
@@ -220,12 +234,28 @@ class Simulator:
         return True
 
     # -------------------------------------------------------------- loop
-    def _receive(self, timeout: float) -> Optional[can.Message]:
-        """The next frame, or None after ``timeout`` s. An interface that is
-        down (a cut bus) stops no drive's control loop: the drives go on
-        moving, supervising and serving calls; the outage is logged once."""
+    def _receive(self, timeout: float) -> Optional[Tuple[int, bytes, bool, float]]:
+        """The next frame as (COB-ID, or -1 for a frame no node takes (an
+        extended identifier, an error frame); data; remote; time stamp), or
+        None after ``timeout`` s. An interface that is down (a cut bus)
+        stops no drive's control loop: the drives go on moving, supervising
+        and serving calls; the outage is logged once."""
         try:
-            msg = self.bus.recv(timeout=timeout)
+            if self._raw is not None:
+                try:
+                    raw = self._raw.recv(timeout)
+                except OSError as exc:  # as python-can reports it
+                    raise can.CanOperationError("Failed to receive: %s" % exc.strerror, exc.errno) from None
+                frame: Optional[Tuple[int, bytes, bool, float]] = None
+                if raw is not None:
+                    can_id, data, stamp = raw
+                    frame = (-1 if can_id & (CAN_EFF_FLAG | CAN_ERR_FLAG) else can_id & 0x7FF,
+                             data, bool(can_id & CAN_RTR_FLAG), stamp)
+            else:
+                msg = self.bus.recv(timeout=timeout)
+                frame = None if msg is None else (
+                    -1 if msg.is_extended_id or msg.is_error_frame else msg.arbitration_id,
+                    bytes(msg.data), msg.is_remote_frame, msg.timestamp)
         except can.CanError as exc:
             if self.bus_error is None:
                 log.warning("receiving: %s: the drives run on without the bus", exc)
@@ -235,37 +265,46 @@ class Simulator:
         if self.bus_error is not None:
             log.info("receiving again after: %s", self.bus_error)
             self.bus_error = None
-        return msg
+        return frame
 
     def step(self, timeout: float) -> None:
-        """Receive for up to ``timeout`` s, then tick if due (one loop pass)."""
-        entered = self.clock()
+        """Receive for up to ``timeout`` s, then tick if due (one loop pass).
+
+        The clock is read when the receive returns and after each frame;
+        again at the end only after a tick or calls (work that takes
+        time), else the pass's last reading stands for its end and for the
+        next pass's start (run() starts it at once). Where reading the clock
+        is a system call (user-mode Linux: about 25 µs), readings are much
+        of what a pass costs."""
+        entered = self._clock_read
         due = entered + max(0.0, timeout)
-        msg = self._receive(max(0.0, timeout))
-        start = time.perf_counter()
+        frame = self._receive(max(0.0, timeout))
+        start = time.perf_counter() if self.statistics else 0.0
         now = self.clock()
         # This process (or the whole host) stood still: woken much later
         # than asked, or the clock jumped between two readings where no
-        # wait was asked for (since the last pass, while handling a frame).
+        # wait was asked for (while handling a frame).
         # A frame the bus carried meanwhile may not have reached the socket
         # yet, and a producer on the same host stood still too; a real
         # drive never stalls, so the heartbeat consumers' clock leaves that
         # time out, and bus time waits for the next pass's frames.
-        stalled = self._stood_still(entered - self._clock_read) | self._stood_still(now - due)
+        stalled = self._stood_still(now - due)
         if self._routes_dirty:
             self._rebuild_routes()
         burst = 0
         empty_at = now  # when the socket was found empty (this pass's receive found nothing)
-        while msg is not None:  # drain a burst (RPDOs + SYNC) before ticking
-            arrival = self._arrival.arrival(msg.timestamp, now)
+        while frame is not None:  # drain a burst (RPDOs + SYNC) before ticking
+            cob, data, remote, stamp = frame
+            arrival = self._arrival.arrival(stamp, now)
             self._delivery.frame(arrival, self._empty_at, now)
             self.bus_time = max(self.bus_time, arrival)
-            self.handle(msg, now)
+            if cob >= 0:
+                self._route(cob, data, remote, now)
             burst += 1
-            msg = self._receive(0.0) if burst < 256 else None
+            frame = self._receive(0.0) if burst < 256 else None
             handled = empty_at = self.clock()
             stalled = self._stood_still(handled - now) or stalled
-            if msg is not None:
+            if frame is not None:
                 now = handled
         if burst < 256:
             self._empty_at = empty_at
@@ -273,19 +312,24 @@ class Simulator:
                 # the socket is empty: every frame sent up to the kernel's
                 # delivery delay before is read, and the loop is up to date
                 self.bus_time = max(self.bus_time, empty_at - self._delivery.delay(empty_at))
-        while not self._calls.empty():
-            fn, box = self._calls.get_nowait()
-            try:
-                box["result"] = fn()
-            except Exception as exc:  # returned to the caller, never kills the loop
-                box["error"] = exc
-            box["done"].set()
+        last = empty_at  # the pass's latest clock reading
+        if not self._calls.empty():
+            while not self._calls.empty():
+                fn, box = self._calls.get_nowait()
+                try:
+                    box["result"] = fn()
+                except Exception as exc:  # returned to the caller, never kills the loop
+                    box["error"] = exc
+                box["done"].set()
+            last = None
         if now >= self._next_tick:
             self._tick(now)
             self._next_tick = max(self._next_tick + self.tick_period, now)
-        self.busy_time += time.perf_counter() - start
-        self.cpu_seconds = time.thread_time() - self._cpu0
-        self._clock_read = self.clock()
+            last = None
+        if self.statistics:
+            self.busy_time += time.perf_counter() - start
+            self.cpu_seconds = time.thread_time() - self._cpu0
+        self._clock_read = self.clock() if last is None else last
 
     def _tick(self, now: float) -> None:
         """Advance every node the clock has not advanced lately."""
@@ -319,13 +363,14 @@ class Simulator:
         the loop (a test that scripts the bus and the clock runs it so)."""
         if self._next_tick is None:
             self._next_tick = self._clock_read = self.clock()
-            self._cpu0 = time.thread_time()
+            if self.statistics:
+                self._cpu0 = time.thread_time()
             self._rebuild_routes()
         done = 0
         while not self._stop.is_set() and (passes is None or done < passes):
             done += 1
             try:
-                self.step(self._next_tick - self.clock())
+                self.step(self._next_tick - self._clock_read)
             except Exception:  # keep serving the other nodes
                 log.exception("virtual EPOS4 loop error")
 
