@@ -18,6 +18,7 @@ files start the same launch file, so this runner:
   after SIGINT or SIGTERM), and then runs once more the nodes that had
   ended by themselves with status 0 (one-shot set-up steps such as the
   controller spawner, which act on the restarted node);
+- runs each test client below the fixture's priority (CLIENT_NICE);
 - writes each file's results where rostest would (RESULTS_DIR/xml/<pkg>.<file>:
   the test's rosunit-*.xml and a rostest-*.xml saying whether it ran) and one
   manifest line per file "<pkg> <file> <status> <seconds> <group>", so a test
@@ -47,6 +48,13 @@ FRESH_LAUNCH_PARAM = "e2e_fresh_launch"
 # node names): a node ended by SIGINT or SIGTERM exits with status 0, like a
 # set-up step that finished, and only the test knows it meant to end it.
 KILLS_PARAM = "e2e_kills"
+# Inside the guest the fixture (the simulated drives, the driver, the master)
+# is the real-time part: its SYNC, heartbeats and TxPDOs are what the tests
+# judge. The test clients only command and observe it, and each start of a
+# client or command-line tool costs seconds of CPU in user-mode Linux. They
+# run at a lower priority, so that their work waits for the fixture's, not
+# the other way round.
+CLIENT_NICE = 5
 
 
 @dataclass
@@ -135,6 +143,15 @@ def _node_key(node: Any) -> Tuple:
 
 def _test_params(config: Any, name: str) -> List[Any]:
     return [p.value for ns in private_namespaces(config) for k, p in config.params.items() if k == ns + name]
+
+
+def lower_client_priority(test: Any, nice: int = CLIENT_NICE) -> None:
+    """Start the <test> node (and the tools it runs) at niceness ``nice``,
+    before any launch-prefix of its own; once, however often it runs."""
+    prefix = "nice -n %d" % nice
+    own = (test.launch_prefix or "").strip()
+    if not own.startswith(prefix):
+        test.launch_prefix = (prefix + " " + own).strip()
 
 
 def wants_fresh_launch(config: Any) -> bool:
@@ -368,6 +385,7 @@ def run_group(group: Group, results: str, report: Callable[[Outcome], None]) -> 
                 os.makedirs(os.path.dirname(result_file), exist_ok=True)
                 test.args = "%s --gtest_output=xml:%s" % (test.args, result_file)
                 print("group %s: test %s (%s)" % (group.name, test.test_name, f.name), flush=True)
+                lower_client_priority(test)
                 try:
                     runner.run_test(test)
                 except RLTestTimeoutException as exc:

@@ -268,3 +268,21 @@ def test_the_lines_that_say_what_failed_are_taken_from_the_tests_log(tmp_path):
         "fault_matrix: case=reboot attempt=1 failed: drive 2 never rebooted",
         "AssertionError: drive 2 never rebooted (attempt 1 of 3)"]
     assert e2e_group.telling_lines(str(tmp_path / "missing.log")) == []
+
+
+def test_a_test_client_runs_below_the_fixture_and_keeps_its_own_launch_prefix(tmp_path):
+    plain = e2e_group.load_file(_test_file(tmp_path, "plain.test", "check"), []).config.tests[0]
+    e2e_group.lower_client_priority(plain)
+    assert plain.launch_prefix == "nice -n %d" % e2e_group.CLIENT_NICE
+    e2e_group.lower_client_priority(plain)  # a test run again is not lowered twice
+    assert plain.launch_prefix == "nice -n %d" % e2e_group.CLIENT_NICE
+
+    path = _test_file(tmp_path, "prefixed.test", "check").replace("prefixed.test", "prefixed2.test")
+    text = open(_test_file(tmp_path, "prefixed.test", "check")).read().replace(
+        'time-limit="60"', 'time-limit="60" launch-prefix="taskset -c 0"')
+    open(path, "w").write(text)
+    prefixed = e2e_group.load_file(path, []).config.tests[0]
+    e2e_group.lower_client_priority(prefixed)
+    assert prefixed.launch_prefix == "nice -n %d taskset -c 0" % e2e_group.CLIENT_NICE
+    # the fixture's nodes are left as they are
+    assert all(not n.launch_prefix for n in e2e_group.load_file(path, []).config.nodes)
