@@ -14,17 +14,22 @@ import can
 import pytest
 
 from maxon_epos4_ros_canopen.cia402 import State
+from maxon_epos4_ros_canopen.driver.access import _SDO_ATTEMPTS, _SDO_FOREIGN_ANSWERS
+from maxon_epos4_ros_canopen.driver.nodes import Timeouts
 from driver_support import DCF1, DCF2, J1, J2, ppm_ready
 
-# Rounds of calls each thread makes before and again after shutdown begins
+# Rounds of calls each thread makes before shutdown begins, and after it
 # (test_services_racing_shutdown_always_answer).
 RACE_ROUNDS = 5
-# A call whose SDO request was on the bus when shutdown closed the link gets
-# no answer: it ends after its tries (1 + 2 + 3 x the 1 s SDO timeout, see
-# ObjectAccess.sdo_transfer), longer on a loaded host. The bound for the
-# rounds after shutdown only limits how long a thread that got stuck takes
-# to fail.
-AFTER_SHUTDOWN_TIMEOUT = 30.0
+AFTER_SHUTDOWN_ROUNDS = 2
+# After shutdown a call may get no answer, or an answer late enough to be
+# taken for another client's: it ends when the driver's tries of the
+# transfer are spent (ObjectAccess.sdo_transfer), each waiting at most 3 SDO
+# timeouts. A round is two transfers, and the three threads take turns on
+# the node's SDO channel. The bound follows from that; it only limits how
+# long a thread that got stuck takes to fail.
+WORST_TRANSFER = Timeouts.sdo * _SDO_ATTEMPTS * (_SDO_ATTEMPTS + _SDO_FOREIGN_ANSWERS)
+AFTER_SHUTDOWN_TIMEOUT = AFTER_SHUTDOWN_ROUNDS * 3 * 2 * WORST_TRANSFER
 # The storm (test_eight_threads_storming_the_driver_lose_no_command): the
 # calls each thread makes and the driver's cycles meanwhile (about 12 s on
 # a 2-core host: the slowest thread, an SDO write, makes some 25 calls a
@@ -33,7 +38,7 @@ AFTER_SHUTDOWN_TIMEOUT = 30.0
 STORM_CALLS = 100
 STORM_CYCLES = 1000
 STORM_TIMEOUT = 180.0
-JOIN_TIMEOUT = 30.0   # a thread told to stop ends within one call (see AFTER_SHUTDOWN_TIMEOUT)
+JOIN_TIMEOUT = 3 * WORST_TRANSFER  # a thread told to stop ends within one call, waiting for its turn
 
 
 @pytest.fixture
@@ -205,10 +210,12 @@ def test_services_racing_shutdown_always_answer(real_driver_rig):
         assert rig.until(lambda: min(rounds) >= RACE_ROUNDS), rounds
         r = d.shutdown()
         after = list(rounds)
-        answering = rig.until(lambda: all(n >= a + RACE_ROUNDS for n, a in zip(rounds, after)),
+        answering = rig.until(lambda: all(n >= a + AFTER_SHUTDOWN_ROUNDS for n, a in zip(rounds, after)),
                               AFTER_SHUTDOWN_TIMEOUT)
         if not answering:  # shown with the failure (pytest cuts a long assertion message short)
-            print("where the calling threads wait:\n" + stacks(threads), flush=True)
+            # every thread: the simulator's and the cycle's tell a starved
+            # drive from a call that waits on the driver itself
+            print("where the threads wait:\n" + stacks(threading.enumerate()), flush=True)
         assert answering, (after, rounds)
     finally:
         stop.set()
