@@ -277,10 +277,11 @@ def test_a_test_client_runs_below_the_fixture_and_keeps_its_own_launch_prefix(tm
     e2e_group.lower_client_priority(plain)  # a test run again is not lowered twice
     assert plain.launch_prefix == "nice -n %d" % e2e_group.CLIENT_NICE
 
-    path = _test_file(tmp_path, "prefixed.test", "check").replace("prefixed.test", "prefixed2.test")
-    text = open(_test_file(tmp_path, "prefixed.test", "check")).read().replace(
-        'time-limit="60"', 'time-limit="60" launch-prefix="taskset -c 0"')
-    open(path, "w").write(text)
+    path = _test_file(tmp_path, "prefixed.test", "check")
+    with open(path) as f:
+        text = f.read().replace('time-limit="60"', 'time-limit="60" launch-prefix="taskset -c 0"')
+    with open(path, "w") as f:
+        f.write(text)
     prefixed = e2e_group.load_file(path, []).config.tests[0]
     e2e_group.lower_client_priority(prefixed)
     assert prefixed.launch_prefix == "nice -n %d taskset -c 0" % e2e_group.CLIENT_NICE
