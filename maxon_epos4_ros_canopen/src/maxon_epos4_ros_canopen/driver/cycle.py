@@ -423,9 +423,9 @@ class ControlCycle:
                 log.exception("driver inbox failed")
         link = self._link
         receiver = link.receiver
-        reception = link.reception
-        if reception is not None:
-            reception.poll(now)
+        own_receiver = link.reception
+        if own_receiver is not None:
+            own_receiver.poll(now)
         period, pdo_timeout = self._period, self._pdo_timeout
         reception = link.receive_clock.progress
         if now - self._wall_offset_at >= WALL_OFFSET_REFRESH:
