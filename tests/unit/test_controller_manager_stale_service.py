@@ -6,6 +6,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 
@@ -16,7 +17,11 @@ REPO = os.path.join(os.path.dirname(__file__), "..", "..")
 CLI = os.path.join(REPO, ".ws", "devel", "lib", "controller_manager", "controller_manager")
 
 
-def _free_port() -> int:
+PRIVATE_MASTER = os.path.join(REPO, "maxon_epos4_ros_canopen", "test", "unit", "private_master.py")
+
+
+def _unused_port() -> int:
+    """A port nobody listens on (bound, not listening, then released)."""
     with socket.socket() as s:
         s.bind(("localhost", 0))
         return s.getsockname()[1]
@@ -24,17 +29,13 @@ def _free_port() -> int:
 
 @pytest.fixture
 def master():
-    port = _free_port()
-    uri = "http://localhost:%d/" % port
-    proc = subprocess.Popen(["rosmaster", "--core", "-p", str(port)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True)
+    # a master on a port it binds itself (see private_master.py for why)
+    proc = subprocess.Popen([sys.executable, PRIVATE_MASTER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    uri = proc.stdout.readline().strip()
+    assert uri.startswith("http://"), "the private master did not start"
     import rosgraph
-    m = rosgraph.Master("/test", master_uri=uri)
-    deadline = time.monotonic() + 60
-    while not m.is_online():
-        assert time.monotonic() < deadline and proc.poll() is None, "rosmaster did not start"
-        time.sleep(0.1)
-    yield uri, m
+    yield uri, rosgraph.Master("/test", master_uri=uri)
     os.killpg(proc.pid, signal.SIGINT)
     proc.wait(timeout=30)
 
@@ -42,8 +43,8 @@ def master():
 def test_spawn_keeps_waiting_while_a_killed_drivers_service_is_still_listed(master):
     uri, m = master
     # what a SIGKILLed driver leaves: its service registered at an address nobody answers on
-    m.registerService("/controller_manager/load_controller", "rosrpc://localhost:%d" % _free_port(),
-                         "http://localhost:%d/" % _free_port())
+    m.registerService("/controller_manager/load_controller", "rosrpc://localhost:%d" % _unused_port(),
+                      "http://localhost:%d/" % _unused_port())
     env = dict(os.environ, ROS_MASTER_URI=uri)
     proc = subprocess.Popen([CLI, "spawn", "some_controller"], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)

@@ -1,5 +1,5 @@
 """A ROS session for the node's tests (test_canopen_motor_node.py,
-test_compat_cli.py): a private roscore, canopen_motor_node with a virtual
+test_compat_cli.py): a private master (private_master.py), canopen_motor_node with a virtual
 EPOS4 in one process (node_with_sim.py), and one ROS client process
 (ros_client.py) that makes the test's service calls, publications and
 controller_manager commands. The user's command-line tools themselves run
@@ -11,7 +11,6 @@ import os
 import re
 import selectors
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -40,12 +39,6 @@ LOG_FORMAT = "[${severity}] [${time}]: ${message}"
 REFUSAL_LINE = re.compile(r"^\[WARN\] \[([0-9.]+)\]: (\S+/command \[.*\] refused: .*)$", re.M)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class ClientError(AssertionError):
     """A request the ROS client could not carry out."""
 
@@ -53,7 +46,7 @@ class ClientError(AssertionError):
 class Session:
     def __init__(self, tmp: Path, namespace: Optional[str] = None) -> None:
         self.env = dict(os.environ)
-        self.env["ROS_MASTER_URI"] = "http://localhost:%d" % free_port()
+        self.env.pop("ROS_MASTER_URI", None)  # start_master sets it: the session's own master
         self.env["ROS_LOG_DIR"] = str(tmp / "log")
         self.env["ROS_HOSTNAME"] = "localhost"
         self.env["ROSCONSOLE_FORMAT"] = LOG_FORMAT
@@ -81,9 +74,26 @@ class Session:
         """A command-line tool as the user runs it, in its own process."""
         return subprocess.run(list(args), env=self.env, capture_output=True, text=True, timeout=timeout)
 
+    def start_master(self) -> None:
+        """The session's private master (private_master.py, on a port it
+        binds itself); every process started after it uses it."""
+        log = self.tmp / "master.log"
+        master = subprocess.Popen([sys.executable, str(HERE / "private_master.py")], env=self.env,
+                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=open(log, "w"), text=True)
+        self.procs.insert(0, master)  # close() stops it last
+        sel = selectors.DefaultSelector()
+        sel.register(master.stdout, selectors.EVENT_READ)
+        try:
+            uri = master.stdout.readline().strip() if sel.select(WAIT) else ""
+        finally:
+            sel.close()
+        if not uri.startswith("http://"):
+            raise ClientError("the private master gave no URI in %.0f s; its log:\n%s" % (WAIT, self.log("master.log")))
+        self.env["ROS_MASTER_URI"] = uri
+
     def start_client(self) -> None:
-        """The ROS client process; it waits for the master itself, so it may
-        start with roscore. ``ready`` waits for it."""
+        """The ROS client process, on the session's master. ``ready`` waits
+        for it."""
         self.client = subprocess.Popen([sys.executable, str(HERE / "ros_client.py")], env=self.env,
                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                        stderr=open(self.tmp / "client.log", "w"), text=True)
@@ -212,7 +222,7 @@ class Session:
         return proc.poll() is None
 
     def close(self) -> None:
-        """Every process but roscore at once, then roscore (the others
+        """Every process but the master at once, then the master (the others
         unregister from it on their way out)."""
         if self.client is not None and self.client.poll() is None:
             self.client.stdin.close()
@@ -243,12 +253,12 @@ def load_layers(layers: Sequence[str]) -> Dict[str, Any]:
 
 
 def start_node(s: Session, layers: Sequence[str]) -> None:
-    """roscore, the example's layers (config/) on the parameter server, and the
+    """A private master, the example's layers (config/) on the parameter server, and the
     node with a virtual EPOS4 (node-ID 1) on a private virtual channel; returns
     once the driver's services are offered. The node is ``s.node``."""
-    s.spawn(["roscore", "-p", s.env["ROS_MASTER_URI"].rsplit(":", 1)[1]], "roscore.log")
-    s.start_client()  # its Python start overlaps roscore's
-    s._answer("ready", WAIT)  # the master is up
+    s.start_master()
+    s.start_client()
+    s._answer("ready", WAIT)
     params = load_layers(layers)
     channel = "node_test_" + uuid.uuid4().hex[:8]
     params["bus"]["device"] = "virtual:" + channel

@@ -1,5 +1,5 @@
 """canopen_motor_node's ROS interface, natively: the node and a virtual EPOS4
-share python-can's in-process bus (node_with_sim.py), a private roscore
+share python-can's in-process bus (node_with_sim.py), a private master
 serves the parameters (node_session.py).
 
 Most steps go through one ROS client process (ros_client.py) that does what
@@ -28,8 +28,8 @@ from node_session import CM_PKG, JOINT, PKG, REPO, Session, start_node
 POS_CTRL = "/maxon/canopen_motor/base_link1_joint_position_controller"
 VEL_CTRL = "/maxon/canopen_motor/base_link1_joint_velocity_controller"
 
-if shutil.which("roscore") is None or shutil.which("rosservice") is None:
-    pytest.fail("ROS 1 command-line tools (roscore, rosservice) are not installed: run tools/setup.sh",
+if shutil.which("rosmaster") is None or shutil.which("rosservice") is None:
+    pytest.fail("ROS 1 command-line tools (rosmaster, rosservice) are not installed: run tools/setup.sh",
                 pytrace=False)
 try:
     import controller_manager_msgs.srv  # noqa: F401
