@@ -321,3 +321,38 @@ def test_frame_order_interleaves_readers_but_keeps_each_readers_order():
         for bus in (a, b, c):
             bus.shutdown()
     assert len(orders) > 3
+
+
+class _ListBus(can.BusABC):
+    """A bus that is not python-can's virtual one: frames put in ``waiting``
+    are received in order."""
+
+    def __init__(self):
+        self.waiting = []
+        super().__init__(channel="list")
+
+    def _recv_internal(self, timeout):
+        return (self.waiting.pop(0) if self.waiting else None), False
+
+    def send(self, msg, timeout=None):
+        raise NotImplementedError
+
+
+def test_every_kind_of_bus_is_read_until_it_is_empty():
+    clock = SteppedClock()
+    a, b = _virtual_pair("clock_kinds_%d" % id(clock))
+    other = _ListBus()
+    seen = []
+    clock.add_pump(b, lambda msg: seen.append(("virtual", msg.arbitration_id)))
+    clock.add_pump(other, lambda msg: seen.append(("other", msg.arbitration_id)))
+
+    def send_both():
+        for cob_id in (0x181, 0x281):
+            a.send(can.Message(arbitration_id=cob_id, is_extended_id=False))
+            other.waiting.append(can.Message(arbitration_id=cob_id + 1, is_extended_id=False))
+    clock.after(0.001, send_both)
+    clock.advance(0.002)
+    assert seen == [("virtual", 0x181), ("virtual", 0x281), ("other", 0x182), ("other", 0x282)]
+    a.shutdown()
+    b.shutdown()
+    other.shutdown()
