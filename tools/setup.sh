@@ -2,7 +2,8 @@
 # Idempotent setup used by `make demo` and `make test`:
 #   1. system packages (Debian 12: ROS 1 from Debian, user-mode Linux, can-utils;
 #      Ubuntu with ROS Noetic: rosdep),
-#   2. .venv from the system Python with the pinned PyPI packages,
+#   2. .venv from the system Python with the pinned PyPI packages (and
+#      .venv38 from a Python 3.8, built in the background meanwhile),
 #   3. the catkin workspace .ws/ (inside the clone, ignored by git).
 # Nothing outside the clone is touched except system packages.
 set -euo pipefail
@@ -62,24 +63,13 @@ else
   exit 1
 fi
 
-# --- 2. Python environment ---------------------------------------------------
-SYS_PY=/usr/bin/python3
-req_hash=$(sha256sum requirements.txt | cut -d' ' -f1)
-if [ ! -x .venv/bin/python ] || [ "$(cat .venv/.requirements.sha256 2>/dev/null)" != "$req_hash" ]; then
-  log "creating .venv from $SYS_PY with the pinned requirements"
-  rm -rf .venv
-  "$SYS_PY" -m venv --system-site-packages .venv
-  .venv/bin/pip install -q --disable-pip-version-check -r requirements.txt
-  echo "$req_hash" > .venv/.requirements.sha256
-else
-  log ".venv: up to date"
-fi
-
-# --- 2b. Python 3.8 (ROS Noetic's) for the ROS-free unit tests ---------------
+# --- 2a. Python 3.8 (ROS Noetic's) for the ROS-free unit tests ---------------
 # Wherever a 3.8 interpreter exists (PYTHON38, python3.8 on PATH or pyenv's),
 # .venv38 gets the same requirements (their markers pick python-can 4.5
 # there); tools/run_tests.sh runs the ROS-free unit tests with it, so that
 # code a Noetic robot cannot run fails here first. No ROS in it.
+SYS_PY=/usr/bin/python3
+req_hash=$(sha256sum requirements.txt | cut -d' ' -f1)
 find_python38() {
   local candidate
   for candidate in "${PYTHON38:-}" "$(command -v python3.8 || true)" \
@@ -89,21 +79,39 @@ find_python38() {
   done
   return 1
 }
+make_venv38() {
+  rm -rf .venv38
+  if "$py38" -m venv .venv38 && .venv38/bin/pip install -q --disable-pip-version-check -r requirements.txt; then
+    echo "$req_hash" > .venv38/.requirements.sha256
+  else
+    log ".venv38 could not be made: the Python 3.8 run of the unit tests will report that"
+    rm -rf .venv38
+  fi
+}
+venv38_pid=""
 if py38=$(find_python38); then
   if [ ! -x .venv38/bin/python ] || [ "$(cat .venv38/.requirements.sha256 2>/dev/null)" != "$req_hash" ]; then
-    log "creating .venv38 from $py38 for the ROS-free unit tests"
-    rm -rf .venv38
-    if "$py38" -m venv .venv38 && .venv38/bin/pip install -q --disable-pip-version-check -r requirements.txt; then
-      echo "$req_hash" > .venv38/.requirements.sha256
-    else
-      log ".venv38 could not be made: the Python 3.8 run of the unit tests will report that"
-      rm -rf .venv38
-    fi
+    # pip runs on one core: .venv and the workspace build take the other meanwhile
+    log "creating .venv38 from $py38 for the ROS-free unit tests, beside .venv and the workspace"
+    venv38_log=$(mktemp)
+    make_venv38 > "$venv38_log" 2>&1 &
+    venv38_pid=$!
   else
     log ".venv38: up to date"
   fi
 else
   log "no Python 3.8 interpreter: the ROS-free unit tests run under $("$SYS_PY" -V 2>&1) only"
+fi
+
+# --- 2b. Python environment --------------------------------------------------
+if [ ! -x .venv/bin/python ] || [ "$(cat .venv/.requirements.sha256 2>/dev/null)" != "$req_hash" ]; then
+  log "creating .venv from $SYS_PY with the pinned requirements"
+  rm -rf .venv
+  "$SYS_PY" -m venv --system-site-packages .venv
+  .venv/bin/pip install -q --disable-pip-version-check -r requirements.txt
+  echo "$req_hash" > .venv/.requirements.sha256
+else
+  log ".venv: up to date"
 fi
 
 # --- 3. catkin workspace ------------------------------------------------------
@@ -154,3 +162,9 @@ log "building the workspace (.ws) with .venv/bin/python3"
       > build.log 2>&1 || { tail -40 build.log; echo "[setup] catkin_make failed (full log: .ws/build.log)"; exit 1; }
 )
 log "workspace built: source tools/env.sh to use it"
+if [ -n "$venv38_pid" ]; then
+  wait "$venv38_pid" || true
+  cat "$venv38_log"
+  rm -f "$venv38_log"
+  [ -x .venv38/bin/python ] && log ".venv38 made"
+fi
