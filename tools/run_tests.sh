@@ -77,6 +77,9 @@ if [ $run_fast = 1 ]; then
   # idles while a long process ends; each one's output is shown when all
   # are done, with its wall time.
   shard_files=${SHARD_FILES:-25}
+  # The searching tests (search_share.py) cover their whole space under the
+  # main Python, every SEARCH_SHARE_38-th case under Python 3.8.
+  SEARCH_SHARE_38=${SEARCH_SHARE_38:-4}
   times="$results/pytest-times"  # the last run's results: they balance the shares
   mkdir -p "$times"
   if compgen -G "$results/pytest*-*.xml" > /dev/null; then
@@ -89,13 +92,14 @@ if [ $run_fast = 1 ]; then
   run_pytest() {  # KIND NAME ARGS...: one pytest process in the background (KIND: pytest or pytest38)
     local kind=$1 name=$2; shift 2
     local xml="$results/$kind-$name.xml" python=.venv/bin/python
-    [ "$kind" = pytest ] || python=.venv38/bin/python
+    local share=${SEARCH_SHARE:-1}
+    [ "$kind" = pytest ] || { python=.venv38/bin/python; share=$SEARCH_SHARE_38; }
     (
       pp="$(IFS=:; echo "${pypath[*]}")"
       # Python 3.8 gets the sources alone: the ROS workspace's modules are 3.11's
       if [ "$kind" = pytest ]; then set +u; . tools/env.sh; set -u; pp="$pp:${PYTHONPATH:-}"; fi
       started=$(date +%s.%N)
-      PYTHONPATH="$pp" \
+      PYTHONPATH="$pp" SEARCH_SHARE="$share" \
         timeout -k 10 1800 "$python" -m pytest -q -p no:cacheprovider --continue-on-collection-errors \
           --junitxml="$xml" "$@"
       rc=$?
@@ -129,6 +133,7 @@ if [ $run_fast = 1 ]; then
   done
   if [ -x .venv38/bin/python ]; then
     echo "=== and the ROS-free unit tests under $(.venv38/bin/python -V 2>&1) (.venv38) beside them"
+    echo "    (the searching tests take every ${SEARCH_SHARE_38}th case there: search_share.py)"
     for d in "${dirs[@]}"; do
       mapfile -t files < <(.venv/bin/python tools/ros_free_tests.py "$d")
       [ ${#files[@]} -gt 0 ] || continue

@@ -11,7 +11,8 @@ is never lost, the last one wins.
 
 On virtual time each interleaving is the same on every run; the threads of
 a real host against the cycle are test_driver_adversary.py's
-(docs/testing.md)."""
+(docs/testing.md). SEARCH_SHARE (search_share.py) may take every N-th line
+of each cycle, a different one in each."""
 import os
 import sys
 import threading
@@ -19,6 +20,7 @@ import threading
 import pytest
 
 from driver_support import J1, ppm_ready
+from search_share import every_nth
 from maxon_epos4_ros_canopen.driver import cycle
 
 DRIVER_DIR = os.path.dirname(os.path.abspath(cycle.__file__))
@@ -120,7 +122,7 @@ def test_a_command_at_any_line_of_any_handshake_cycle_is_never_lost(stepped):
     lines = stepper.max_lines
     assert lines > 50  # the whole cycle is traced, not just its head
     for offset in range(1, HANDSHAKE_CYCLES + 1):
-        for line in range(1, lines + 1):
+        for line in every_nth(range(1, lines + 1), phase=offset):
             first, second = value + 7, value + 11
             value = second
             # one command starts a handshake; the second one arrives while

@@ -15,6 +15,7 @@ consumer, SDO reads, fault injection (EMCY, reboot, silence, SDO delay,
 corrupted frame), hard stops for homing; time advances by ticks and SYNCs
 of uneven length, including steps just over a whole number of control
 cycles (where the motor splits a cycle) and beyond the longest step.
+SEARCH_SHARE (search_share.py) may take every N-th sequence.
 
 The simulator's loop pass (Simulator.step: frames as tuples straight to
 the nodes, fewer clock readings) is held the same way to the pass as it
@@ -34,6 +35,7 @@ from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
 from maxon_epos4_ros_canopen.sim.drive import VirtualEpos4
 from maxon_epos4_ros_canopen.sim.objects import load_od
 from sim_reference import ReferenceEpos4, ReferenceSimulator
+from search_share import every_nth
 from sim_support import NODE1, NODE1_HM, WALL_OFFSET, ScriptedClock
 
 SEQUENCES = 160
@@ -205,7 +207,8 @@ def _command(pair: Pair, rng: random.Random) -> str:
 @pytest.mark.parametrize("part", range(4))
 def test_the_per_tick_motion_is_the_reference_motion_bit_for_bit(part):
     moved = 0
-    for seed in range(part * SEQUENCES // 4, (part + 1) * SEQUENCES // 4):
+    seeds = every_nth(range(part * SEQUENCES // 4, (part + 1) * SEQUENCES // 4))
+    for seed in seeds:
         rng = random.Random(seed)
         hard_stop = rng.choice((None, (-20000.0, 20000.0), (-3000.0, 500.0)))
         pair = Pair(NODE1_HM if rng.random() < 0.3 else NODE1, hard_stop)
@@ -214,8 +217,10 @@ def test_the_per_tick_motion_is_the_reference_motion_bit_for_bit(part):
             history.append(_command(pair, rng))
             pair.check(history)
         moved += abs(pair.nodes[0].motor.position) > 1.0
-    # the sequences moved the rotors: the comparison was not between two drives at rest
-    assert moved >= SEQUENCES // 8, moved
+    # the sequences moved the rotors: the comparison was not between two
+    # drives at rest (of all 160 sequences, 62-70 % of each part's move;
+    # of every fourth, 40-60 %)
+    assert moved >= len(seeds) // 3, (moved, len(seeds))
 
 
 # ---------------------------------------------------------------- the loop
