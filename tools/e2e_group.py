@@ -30,6 +30,7 @@ FixtureNodes) with unit tests in tests/unit/test_e2e_group.py.
 from __future__ import annotations
 
 import argparse
+import copy
 import glob
 import os
 import shutil
@@ -321,10 +322,35 @@ def manifest_line(out: Outcome, group: Group) -> str:
 
 # --- the ROS part ----------------------------------------------------------------
 
+# roslaunch runs a <param command="..."> afresh for every file it loads:
+# roscore.xml's two `rosversion` parameters and each robot's xacro. In
+# user-mode Linux each is a Python start of a second or two, 66 of them for
+# the suite's files, and each shard loads every file to plan its groups.
+# Within one run of this runner a command's output does not change, so each
+# distinct command runs once (a command that fails is tried again).
+_COMMAND_OUTPUTS: Dict[Tuple[str, str], Any] = {}
+
+
+def _loader() -> Any:
+    """roslaunch's XML loader, running each distinct param command once."""
+    import roslaunch.xmlloader
+
+    class OnceLoader(roslaunch.xmlloader.XmlLoader):
+        def param_value(self, verbose, name, ptype, value, textfile, binfile, command):
+            if command is None:
+                return super().param_value(verbose, name, ptype, value, textfile, binfile, command)
+            key = (str(ptype), str(command))
+            if key not in _COMMAND_OUTPUTS:
+                _COMMAND_OUTPUTS[key] = super().param_value(verbose, name, ptype, value, textfile, binfile, command)
+            return copy.deepcopy(_COMMAND_OUTPUTS[key])
+
+    return OnceLoader()
+
+
 def load_file(path: str, launch_args: Sequence[str]) -> RostestFile:
     import roslaunch.config
     import rospkg
-    config = roslaunch.config.load_config_default([(path, list(launch_args))], None)
+    config = roslaunch.config.load_config_default([(path, list(launch_args))], None, loader=_loader())
     pkg = rospkg.get_package_name(path) or os.path.basename(os.path.dirname(os.path.dirname(os.path.dirname(
         os.path.abspath(path)))))
     return RostestFile(pkg, path, fixture_key(config), config, wants_fresh_launch(config), nodes_killed(config))

@@ -57,6 +57,22 @@ def test_files_with_the_same_fixture_share_one_group_in_the_given_order(tmp_path
     assert groups[0].name == "pkg.a_loss_sigint"
 
 
+def test_a_param_command_runs_once_for_all_the_files_that_name_it(tmp_path):
+    runs = tmp_path / "runs"
+    script = tmp_path / "describe_robot"
+    script.write_text("#!/bin/sh\necho run >> %s\necho \"<robot name='$1'/>\"\n" % runs)
+    script.chmod(0o755)
+    extra = '<param name="robot_description" command="%s arm"/>' % script
+    a = _load(_test_file(tmp_path, "a.test", "check", extra=extra))
+    b = _load(_test_file(tmp_path, "b.test", "check", extra=extra))
+    other = '<param name="robot_description" command="%s leg"/>' % script
+    c = _load(_test_file(tmp_path, "c.test", "check", extra=other))
+    assert runs.read_text().count("run") == 2  # "arm" once, "leg" once
+    values = [f.config.params["/robot_description"].value.strip() for f in (a, b, c)]
+    assert values == ["<robot name='arm'/>", "<robot name='arm'/>", "<robot name='leg'/>"]
+    assert len(e2e_group.plan_groups([a, b, c])) == 2
+
+
 def test_an_extra_parameter_or_node_makes_its_own_group(tmp_path):
     a = _load(_test_file(tmp_path, "a.test", "check"))
     b = _load(_test_file(tmp_path, "b.test", "check", extra='<param name="/ns/constraints/goal_time" value="3.0"/>'))
