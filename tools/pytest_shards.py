@@ -1,15 +1,22 @@
 #!/usr/bin/env python3
 """Split one folder's test files into pytest processes of about equal time.
 
-    pytest_shards.py --shards N [--times FILE.xml]... FILE...
+    pytest_shards.py --shards N [--times FILE.xml]... [--seed SEED.json --kind KIND] FILE...
+    pytest_shards.py --write-seed SEED.json RESULT.xml...
 
 Prints N lines, one per process: its files, space-separated (a line may be
 empty when there are fewer files than processes). A file's time is the sum
 of its test cases' times in the JUnit files of the last run (--times); a
-file they do not name counts as the median of those they do (1 s when they
-name none). The files go, longest first, each to the process with the least
-time so far (ties: the lower number); equal times are taken in name order,
-so the same times give the same split.
+file they do not name takes its seconds from the seed (--seed, the entry of
+KIND: pytest or pytest38), and a file neither names counts as the median of
+the others (1 s when none is known). The files go, longest first, each to
+the process with the least time so far (ties: the lower number); equal
+times are taken in name order, so the same times give the same split.
+
+The seed (tools/pytest_times.json) is what a fresh clone, which has no last
+run, balances by; ``--write-seed`` makes it from a run's
+``.results/pytest[38]-*.xml``, run in the repository's root. Its figures
+only balance processes: an old seed costs time, never a test.
 
 tools/run_tests.sh splits the largest unit-test folder this way: the files
 of one folder stay in processes of their own, as its conftest.py and its
@@ -18,6 +25,8 @@ module names need.
 from __future__ import annotations
 
 import argparse
+import glob
+import json
 import os
 import statistics
 import sys
@@ -50,6 +59,42 @@ def file_times(xml_paths: Sequence[str], files: Sequence[str]) -> Dict[str, floa
     return times
 
 
+def seed_times(seed_path: str, kind: str, files: Sequence[str]) -> Dict[str, float]:
+    """Seconds per file among ``files`` in the seed's entry for ``kind``
+    (none when the seed is missing or unreadable)."""
+    try:
+        with open(seed_path) as f:
+            entry = json.load(f).get(kind, {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+    wanted = {os.path.normpath(f): f for f in files}
+    out: Dict[str, float] = {}
+    for name, seconds in entry.items():
+        f = wanted.get(os.path.normpath(name))
+        if f is not None and isinstance(seconds, (int, float)):
+            out[f] = float(seconds)
+    return out
+
+
+def write_seed(seed_path: str, xml_paths: Sequence[str]) -> Dict[str, Dict[str, float]]:
+    """The seed from a run's JUnit files ``<kind>-<name>.xml``: per kind,
+    seconds per test file of the repository (found from the current
+    folder), rounded to 0.1 s."""
+    files = sorted(glob.glob(os.path.join("*", "test", "unit", "test_*.py"))
+                   + glob.glob(os.path.join("tests", "unit", "test_*.py")))
+    seed: Dict[str, Dict[str, float]] = {}
+    for path in xml_paths:
+        kind = os.path.basename(path).split("-", 1)[0]
+        for f, seconds in file_times([path], files).items():
+            entry = seed.setdefault(kind, {})
+            entry[f] = round(entry.get(f, 0.0) + seconds, 1)
+    seed = {kind: dict(sorted(entry.items())) for kind, entry in sorted(seed.items())}
+    with open(seed_path, "w") as out:
+        json.dump(seed, out, indent=1)
+        out.write("\n")
+    return seed
+
+
 def shards(files: Sequence[str], times: Dict[str, float], count: int) -> List[List[str]]:
     """``files`` in ``count`` lists of about equal total time (greedy,
     longest first); each list in name order."""
@@ -66,13 +111,21 @@ def shards(files: Sequence[str], times: Dict[str, float], count: int) -> List[Li
 
 def main(argv: Sequence[str] = ()) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--shards", type=int, required=True, help="how many processes")
+    ap.add_argument("--shards", type=int, help="how many processes")
     ap.add_argument("--times", action="append", default=[], help="JUnit XML of the last run")
+    ap.add_argument("--seed", help="seconds per file for those the last run does not name (JSON)")
+    ap.add_argument("--kind", default="pytest", help="the seed's entry: pytest or pytest38")
+    ap.add_argument("--write-seed", metavar="SEED", help="write the seed from the JUnit files given as FILEs")
     ap.add_argument("files", nargs="*")
     args = ap.parse_args(list(argv))
-    if args.shards < 1:
+    if args.write_seed:
+        write_seed(args.write_seed, args.files)
+        return 0
+    if args.shards is None or args.shards < 1:
         ap.error("--shards must be at least 1")
-    for shard in shards(args.files, file_times(args.times, args.files), args.shards):
+    times = seed_times(args.seed, args.kind, args.files) if args.seed else {}
+    times.update(file_times(args.times, args.files))
+    for shard in shards(args.files, times, args.shards):
         print(" ".join(shard))
     return 0
 

@@ -68,7 +68,8 @@ if [ $run_fast = 1 ]; then
           maxon_epos4_ros_canopen/test/unit/test_compat_cli.py)
   # One pytest process per test folder, or per share of a folder's files
   # for the larger ones (a process per SHARD_FILES files, balanced by the
-  # last run's times, tools/pytest_shards.py): test modules of different
+  # last run's times, tools/pytest_shards.py; a fresh clone by the seed
+  # tools/pytest_times.json): test modules of different
   # packages may share a name, and a package folder must never shadow the
   # package. The ROS-free files run again under Python 3.8 (ROS Noetic's),
   # in .venv38 (tools/setup.sh makes it wherever a 3.8 interpreter exists;
@@ -117,7 +118,7 @@ if [ $run_fast = 1 ]; then
       i=$((i + 1))
       read -r -a share <<< "$line"
       [ ${#share[@]} = 0 ] || run_pytest "$kind" "${name}_$i" "${share[@]}"
-    done < <(.venv/bin/python tools/pytest_shards.py --shards "$n" \
+    done < <(.venv/bin/python tools/pytest_shards.py --shards "$n" --seed tools/pytest_times.json --kind "$kind" \
                $(for f in "$times/$kind-$name".xml "$times/$kind-$name"_[0-9]*.xml; do
                    [ -f "$f" ] && echo --times "$f"; done) "$@")
   }

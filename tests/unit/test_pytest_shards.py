@@ -50,3 +50,39 @@ def test_command_line_prints_one_line_per_process(tmp_path, monkeypatch, capsys)
     monkeypatch.chdir(tmp_path)
     assert pytest_shards.main(["--shards", "2"] + FILES[:3]) == 0
     assert capsys.readouterr().out == "%s %s\n%s\n" % (FILES[0], FILES[2], FILES[1])
+
+
+def test_a_fresh_clone_balances_by_the_seed_and_the_last_run_overrides_it(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    seed = tmp_path / "seed.json"
+    seed.write_text('{"pytest38": {"%s": 50.0, "./%s": 30.0, "%s": 99.0}, "pytest": {"%s": 1.0}}'
+                    % (FILES[4], FILES[5], FILES[0], FILES[4]))
+    # the seed's entry of the kind asked for, matched by normalised path
+    assert pytest_shards.seed_times(str(seed), "pytest38", FILES[4:]) == {FILES[4]: 50.0, FILES[5]: 30.0}
+    assert pytest_shards.seed_times(str(tmp_path / "none.json"), "pytest38", FILES) == {}
+    # fresh: a 99, e 50, new 30 from the seed, b c d the median (50):
+    # a, b, c, d, e, new go to 0, 1, 1, 0, 1, 0
+    args = ["--shards", "2", "--seed", str(seed), "--kind", "pytest38"]
+    assert pytest_shards.main(args + FILES) == 0
+    assert capsys.readouterr().out == "%s %s %s\n%s %s %s\n" % (FILES[0], FILES[3], FILES[5],
+                                                              FILES[1], FILES[2], FILES[4])
+    # the last run names a (40), b (20), c (15), d (5): it wins over the seed's 99 for a
+    (tmp_path / "last.xml").write_text(JUNIT)
+    assert pytest_shards.main(args + ["--times", str(tmp_path / "last.xml")] + FILES) == 0
+    # e 50, a 40, new 30, b 20, c 15, d 5 go to 0, 1, 1, 0, 0 (a tie: the lower), 1
+    assert capsys.readouterr().out == "%s %s %s\n%s %s %s\n" % (FILES[1], FILES[2], FILES[4],
+                                                              FILES[0], FILES[3], FILES[5])
+
+
+def test_the_seed_is_written_from_a_runs_junit_files(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "pkg" / "test" / "unit").mkdir(parents=True)
+    for f in FILES:
+        (tmp_path / f).write_text("")
+    (tmp_path / "pytest-pkg_test_unit_1.xml").write_text(JUNIT)
+    (tmp_path / "pytest38-pkg_test_unit.xml").write_text(JUNIT.replace('time="40.0"', 'time="60.0"'))
+    assert pytest_shards.main(["--write-seed", "seed.json", "pytest-pkg_test_unit_1.xml",
+                               "pytest38-pkg_test_unit.xml"]) == 0
+    seed = pytest_shards.seed_times("seed.json", "pytest38", FILES)
+    assert seed == {FILES[0]: 60.0, FILES[1]: 20.0, FILES[2]: 15.0, FILES[3]: 5.0}
+    assert pytest_shards.seed_times("seed.json", "pytest", FILES)[FILES[0]] == 40.0
