@@ -10,10 +10,31 @@ publishes once per cycle. cycle.py lists who owns which field.
 ``get_object/set_object``, ``switch_mode``, ``set_command``, ``joints``
 (the snapshots) and the per-SYNC cycle; see docs/driver.md.
 """
-from ..limits import JointLimits
-from ..result import Result
-from .snapshot import AxisSnapshot
-from .core import Driver, DriverSnapshot, joint_states_stamp
-from .modes import COMMAND_KINDS, MODES
+from __future__ import annotations
 
-__all__ = ["Driver", "DriverSnapshot", "joint_states_stamp", "AxisSnapshot", "JointLimits", "Result", "COMMAND_KINDS", "MODES"]
+import importlib
+from typing import Any
+
+# The package's names, each from the module that defines it, imported when
+# first used: a tool that needs one part (epos4_settings needs sdo.py) does
+# not pay for loading the whole driver at every start.
+_HOMES = {
+    "Driver": ".core", "DriverSnapshot": ".core", "joint_states_stamp": ".core",
+    "AxisSnapshot": ".snapshot", "COMMAND_KINDS": ".modes", "MODES": ".modes",
+    "JointLimits": "..limits", "Result": "..result",
+}
+
+__all__ = list(_HOMES)
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError("module %r has no attribute %r" % (__name__, name))
+    value = getattr(importlib.import_module(home, __name__), name)
+    globals()[name] = value  # the next lookup finds it here
+    return value
+
+
+def __dir__() -> list:
+    return sorted(set(globals()) | set(_HOMES))
