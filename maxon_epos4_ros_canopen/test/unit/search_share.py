@@ -1,10 +1,14 @@
 """How much of their search space the searching tests cover in this run.
 
-Two tests search a space case by case: every interleaving of a command with
-the cycle's lines (test_driver_interleaving.py) and random command
-sequences against the reference simulator (test_sim_differential.py). Their
-outcome is a property of the code, not of the interpreter, and each case
-runs the same code paths as the others.
+Some tests search a space case by case, or repeat one piece of work many
+times over: every interleaving of a command with the cycle's lines
+(test_driver_interleaving.py), random command sequences against the
+reference simulator (test_sim_differential.py), random frames into the
+simulator (test_sim_fuzz.py), threads storming the driver for a counted
+amount of work (test_driver_adversary.py), and a driver of every node-ID
+from 1 to 127 (test_driver_init.py). Their outcome is a property of the
+code, not of the interpreter, and each case runs the same code paths as
+the others.
 
 ``SEARCH_SHARE=N`` in the environment has them take every N-th case
 (``share``, ``every_nth``); unset, they take all. tools/run_tests.sh sets 4

@@ -11,6 +11,7 @@ from maxon_epos4_ros_canopen.cia402 import State, state_from_statusword
 from maxon_epos4_ros_canopen.driver.modes import CONTROLWORD, MODES_OF_OPERATION, TARGET_POSITION
 from maxon_epos4_ros_canopen.driver.plan import DRIVER_OWNED
 from driver_support import DCF1, DCF2, J1, J2
+from search_share import every_nth
 
 SYNC = 0x080
 SDO_UPLOAD_ANSWER = 0x40  # command specifier bits of an SDO upload answer (expedited or not)
@@ -146,7 +147,9 @@ def test_a_node_that_stops_answering_is_named_with_the_step_and_the_others_end_d
 
 
 def test_init_of_127_drives_in_one_process(rig):
-    nodes = tuple((nid, DCF1, "j%d" % nid) for nid in range(1, 128))
+    # SEARCH_SHARE (search_share.py): every N-th node-ID, node-ID 127 always among them
+    node_ids = every_nth(range(1, 128), phase=126)
+    nodes = tuple((nid, DCF1, "j%d" % nid) for nid in node_ids)
     # 100 ms SYNC: 127 drives' PDOs fit the simulator's and the cycle's CPU
     d = rig.start(nodes=nodes, sync={"interval_ms": 100, "overflow": 0}, heartbeat=None)
     r = d.init()

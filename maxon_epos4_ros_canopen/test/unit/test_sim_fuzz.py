@@ -9,10 +9,11 @@ import can
 import pytest
 from canopen.sdo.exceptions import SdoCommunicationError
 
+from search_share import share
 from sim_support import NODE1, NODE2, NodeConfig, spin_up
 from maxon_epos4_ros_canopen import fuzz
 
-FRAMES = 100_000
+FRAMES = 100_000 // share()  # SEARCH_SHARE (search_share.py): a share of the storm
 # How long a node may keep failing SDO after the storm (forged answers still
 # queued in the client) before the test fails: generous, it only bounds how
 # long a failure takes on a loaded host. Between tries the client pauses
