@@ -1,6 +1,7 @@
 """100,000 random and malformed frames (a share of them under SEARCH_SHARE,
-search_share.py) into the virtual EPOS4 (two nodes, one moving): no exception in any thread, no error logged by the simulator's
-loop, and every node still answers SDO afterwards."""
+search_share.py) into the virtual EPOS4 (two nodes, one moving): no
+exception in any thread, no error logged by the simulator's loop, and every
+node still answers SDO afterwards."""
 import logging
 import struct
 import threading
