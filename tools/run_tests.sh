@@ -78,8 +78,9 @@ if [ $run_fast = 1 ]; then
   # idles while a long process ends; each one's output is shown when all
   # are done, with its wall time.
   shard_files=${SHARD_FILES:-25}
-  # The searching tests (search_share.py) cover their whole space under the
-  # main Python, every SEARCH_SHARE_38-th case under Python 3.8.
+  # The searching and the parametrized tests (search_share.py) cover their
+  # whole space under the main Python, one case in SEARCH_SHARE_38 under
+  # Python 3.8.
   SEARCH_SHARE_38=${SEARCH_SHARE_38:-4}
   times="$results/pytest-times"  # the last run's results: they balance the shares
   mkdir -p "$times"
@@ -134,7 +135,7 @@ if [ $run_fast = 1 ]; then
   done
   if [ -x .venv38/bin/python ]; then
     echo "=== and the ROS-free unit tests under $(.venv38/bin/python -V 2>&1) (.venv38) beside them"
-    echo "    (the searching tests take every ${SEARCH_SHARE_38}th case there: search_share.py)"
+    echo "    (the searching and parametrized tests take one case in ${SEARCH_SHARE_38} there: search_share.py)"
     for d in "${dirs[@]}"; do
       mapfile -t files < <(.venv/bin/python tools/ros_free_tests.py "$d")
       [ ${#files[@]} -gt 0 ] || continue

@@ -64,6 +64,42 @@ def rosservice_call(service: str, *args: str, cli: bool = False) -> Dict[str, An
     return answer if isinstance(answer, dict) else {"raw": text}
 
 
+_publishers: Dict[str, Any] = {}
+
+
+def rostopic_pub_once(topic: str, msg_type: str, *args: str, cli: bool = False) -> None:
+    """`rostopic pub -1 TOPIC TYPE ARGS...` as a user types it. The
+    arguments are taken as the command takes them: read as YAML after an
+    optional ``--``, the message filled from them in order. ``cli``: run
+    the command itself; otherwise the same steps in this process, sent once
+    the topic's subscribers are connected, since the command's start-up and
+    its 3 s latch cost seconds in user-mode Linux. The publisher does not
+    latch: a node started later must not get an old command."""
+    if cli:
+        proc = run(["rostopic", "pub", "-1", topic, msg_type] + list(args))
+        if proc.returncode != 0:
+            raise AssertionError("rostopic pub -1 %s %s %s failed (%d): %s %s"
+                                 % (topic, msg_type, " ".join(args), proc.returncode, proc.stdout, proc.stderr))
+        return
+    import genpy
+    import roslib.message
+    import std_msgs.msg
+    values = list(args[1:]) if args[:1] == ("--",) else list(args)
+    msg_class = roslib.message.get_message_class(msg_type)
+    if msg_class is None:
+        raise AssertionError("rostopic pub: no message type %s" % msg_type)
+    msg = msg_class()
+    now = rospy.get_rostime()
+    genpy.message.fill_message_args(msg, [yaml.safe_load(v) for v in values],
+                                    keys={"now": now, "auto": std_msgs.msg.Header(stamp=now)})
+    pub = _publishers.get(topic)
+    if pub is None or pub.type != msg_type:
+        pub = _publishers[topic] = rospy.Publisher(topic, msg_class, queue_size=10)
+    if not poll(lambda: pub.get_num_connections() > 0, WAIT, step=0.05):
+        raise AssertionError("rostopic pub -1 %s: no subscriber for %.0f s" % (topic, WAIT))
+    pub.publish(msg)
+
+
 class Background:
     """A long-running command (`rostopic pub ...` latches until Ctrl-C)."""
 

@@ -24,6 +24,7 @@ from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
 
 from driver_support import (CHANCE_CYCLES, DCF1, GENEROUS_MASTER_CONSUMER, J1, SEED_UNITS, SYNC_MS,
                             TIMEOUT)
+from search_share import every_nth_parametrization
 
 _channels = itertools.count()
 # How long the test's own client waits for an SDO answer on the wall clock:
@@ -32,6 +33,15 @@ _channels = itertools.count()
 REAL_SDO_TIMEOUT = 5.0
 _NODE1 = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                       "config", "epos4_node1.dcf")
+
+
+def pytest_collection_modifyitems(config: Any, items: List[Any]) -> None:
+    """Under SEARCH_SHARE=N, each parametrized test takes every N-th of its
+    cases (search_share.py)."""
+    kept, left = every_nth_parametrization(items)
+    if left:
+        config.hook.pytest_deselected(items=left)
+        items[:] = kept
 
 
 def wait_on(clock: Clock, condition: Callable[[], bool], timeout: float = 10.0) -> bool:

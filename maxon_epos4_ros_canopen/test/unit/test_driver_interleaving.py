@@ -54,8 +54,10 @@ class CycleStepper:
         self.in_cycle = False
         self.lines_in_cycle = 0
         self.max_lines = 0
+        self.measuring = True      # every cycle is traced until the first arm()
 
     def arm(self, cycle_offset, line, action):
+        self.measuring = False
         self.fired = self.missed = False
         self.answer = None
         self.action = action
@@ -71,7 +73,6 @@ class CycleStepper:
         code = frame.f_code
         if code is self.run_code:
             # a new cycle begins
-            self.in_cycle = True
             self.max_lines = max(self.max_lines, self.lines_in_cycle)
             self.lines_in_cycle = 0
             armed = self.armed
@@ -82,7 +83,11 @@ class CycleStepper:
                     self._fire(missed=True)
                 else:
                     armed[0] -= 1
-            return self.local_trace
+            # only the aimed-at cycle needs its lines counted: tracing the
+            # others would only slow the run down
+            armed = self.armed
+            self.in_cycle = self.measuring or (armed is not None and armed[0] == 0)
+            return self.local_trace if self.in_cycle else None
         if self.in_cycle and code.co_filename.startswith(DRIVER_DIR):
             return self.local_trace
         return None
