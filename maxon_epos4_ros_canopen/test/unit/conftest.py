@@ -36,8 +36,8 @@ _NODE1 = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.ab
 
 
 def pytest_collection_modifyitems(config: Any, items: List[Any]) -> None:
-    """Under SEARCH_SHARE=N, each parametrized test takes every N-th of its
-    cases (search_share.py)."""
+    """Under SEARCH_SHARE=N, each parametrized test takes one case in N, at
+    least one (search_share.py)."""
     kept, left = every_nth_parametrization(items)
     if left:
         config.hook.pytest_deselected(items=left)
