@@ -50,18 +50,26 @@ def rosservice_call(service: str, *args: str, cli: bool = False) -> Dict[str, An
     else:
         import genpy
         import rosservice
-        import std_msgs.msg
         try:
             service_class = rosservice.get_service_class_by_name(service)
             request = service_class._request_class()
-            now = rospy.get_rostime()
-            genpy.message.fill_message_args(request, [yaml.safe_load(a if a != "" else "''") for a in args],
-                                            keys={"now": now, "auto": std_msgs.msg.Header(stamp=now)})
+            fill_from_yaml(request, [a if a != "" else "''" for a in args])
             text = str(rospy.ServiceProxy(service, service_class)(request))
         except (rosservice.ROSServiceException, rospy.ServiceException, genpy.MessageException) as e:
             raise AssertionError("rosservice call %s %s failed: %s" % (service, " ".join(args), e)) from None
     answer = yaml.safe_load(text)
     return answer if isinstance(answer, dict) else {"raw": text}
+
+
+def fill_from_yaml(msg: Any, args: Sequence[str]) -> None:
+    """Fill ``msg`` from command-line arguments as `rosservice call` and
+    `rostopic pub` do: each read as YAML, the fields filled in order, with
+    their keys "now" and "auto" (raises genpy.MessageException)."""
+    import genpy
+    import std_msgs.msg
+    now = rospy.get_rostime()
+    genpy.message.fill_message_args(msg, [yaml.safe_load(a) for a in args],
+                                    keys={"now": now, "auto": std_msgs.msg.Header(stamp=now)})
 
 
 _publishers: Dict[str, Any] = {}
@@ -81,17 +89,12 @@ def rostopic_pub_once(topic: str, msg_type: str, *args: str, cli: bool = False) 
             raise AssertionError("rostopic pub -1 %s %s %s failed (%d): %s %s"
                                  % (topic, msg_type, " ".join(args), proc.returncode, proc.stdout, proc.stderr))
         return
-    import genpy
     import roslib.message
-    import std_msgs.msg
-    values = list(args[1:]) if args[:1] == ("--",) else list(args)
     msg_class = roslib.message.get_message_class(msg_type)
     if msg_class is None:
         raise AssertionError("rostopic pub: no message type %s" % msg_type)
     msg = msg_class()
-    now = rospy.get_rostime()
-    genpy.message.fill_message_args(msg, [yaml.safe_load(v) for v in values],
-                                    keys={"now": now, "auto": std_msgs.msg.Header(stamp=now)})
+    fill_from_yaml(msg, args[1:] if args[:1] == ("--",) else args)
     pub = _publishers.get(topic)
     if pub is None or pub.type != msg_type:
         pub = _publishers[topic] = rospy.Publisher(topic, msg_class, queue_size=10)

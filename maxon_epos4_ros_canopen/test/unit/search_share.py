@@ -13,9 +13,9 @@ the others.
 The parametrized cases of one test function are such a space too.
 
 ``SEARCH_SHARE=N`` in the environment has them take every N-th case
-(``share``, ``every_nth``), and each parametrized test function every N-th
-of its cases, at least one (``every_nth_parametrization``, which
-conftest.py applies at collection); unset, they take all. tools/run_tests.sh
+(``share``, ``every_nth``), and each parametrized test function one case
+in N, at least one (``every_nth_parametrization``, which conftest.py
+applies at collection); unset, they take all. tools/run_tests.sh
 sets 4 for the Python 3.8 pass, which proves the code runs on Noetic's
 Python: there the searches still run each of their code paths, the main
 interpreter's pass covers the whole space.
@@ -68,7 +68,6 @@ def every_nth_parametrization(items: Sequence[Any]) -> Tuple[List[Any], List[Any
     for k, group in enumerate(cases.values()):
         count = len(group)
         taken.update(id(group[(k + j * (n + 1)) % count]) for j in range(-(-count // n)))
-    kept, left = [], []
-    for item in items:
-        (left if getattr(item, "callspec", None) is not None and id(item) not in taken else kept).append(item)
+    kept = [item for item in items if getattr(item, "callspec", None) is None or id(item) in taken]
+    left = [item for item in items if getattr(item, "callspec", None) is not None and id(item) not in taken]
     return kept, left
