@@ -17,12 +17,16 @@ What is charged: the master process's CPU time. The virtual EPOS4 runs in
 a process of its own (forked at start), joined to the master by a
 socketpair that carries CAN frames (PipeBus): sharing the master's GIL, 32
 DCF drives and the driver need more than 10 ms of CPU per 10 ms SYNC, and
-the simulated drives would fall ever further behind. After init the master's bus is a sink for PDOs: they are counted and
-dropped (only SYNC reaches the simulator); TxPDOs still arrive and are
-decoded by the master.
+the simulated drives would fall ever further behind. After init the
+master's bus is a sink for PDOs: they are counted and dropped (only SYNC
+reaches the simulator); TxPDOs still arrive and are decoded by the master.
+The driver gets the TxPDOs on a second socketpair as SocketCAN frames
+(``struct can_frame``, stamped by the kernel) and reads them with its own
+SocketCAN receiver, as it reads a CAN_RAW socket on a real bus; the loops
+written here read theirs through python-can, as their users do.
 CSP at 10 ms SYNC, a new target position every cycle for every axis.
-The driver is used through its public API only (Driver(config, bus=...),
-init, switch_mode, add_cycle_callback, set_command, close).
+The driver is used through its public API only (Driver(config, bus=...,
+pdo_bus=...), init, switch_mode, add_cycle_callback, set_command, close).
 
 Two baselines: ``baseline``, python-canopen's PDO maps (DCF layout);
 ``lean``, what a competent user writes on python-can alone: each cycle
@@ -150,13 +154,40 @@ class PipeBus(can.BusABC):
         super().shutdown()
 
 
+class CanFramePipe:
+    """The simulator's end of the pipe that carries its TxPDOs to the
+    driver as a CAN_RAW socket hands them over: one ``struct can_frame``
+    per datagram, stamped by the kernel on receipt (SO_TIMESTAMPNS works on
+    a local socketpair too). The driver reads it with its own SocketCAN
+    receiver (driver/cycle_reception.RawCanReceiver), as on a real bus."""
+
+    FRAME = struct.Struct("=IB3x8s")  # struct can_frame
+
+    def __init__(self, sock: socket.socket, sent) -> None:
+        """``sent``: a shared counter of the frames sent (multiprocessing.Value)."""
+        self.sock = sock
+        self.sent = sent
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 22)
+        sock.settimeout(1.0)  # a master that stopped reading: the frame is lost, as on a full queue
+
+    def send(self, msg: can.Message, timeout: Optional[float] = None) -> None:
+        try:
+            self.sock.send(self.FRAME.pack(msg.arbitration_id, msg.dlc, bytes(msg.data)))
+        except OSError as e:
+            raise can.CanOperationError("pipe send: %s" % e) from None
+        self.sent.value += 1
+
+    def shutdown(self) -> None:
+        self.sock.close()
+
+
 class SplitBus(can.BusABC):
     """The simulator's end when the driver reads its TxPDOs from a pipe of
     their own (Driver's ``pdo_bus``), as the driver's kernel filter splits
     them from the rest on SocketCAN: TxPDOs go out on ``pdo``, everything
     else on ``main``, which alone carries frames from the master."""
 
-    def __init__(self, main: PipeBus, pdo: PipeBus) -> None:
+    def __init__(self, main: PipeBus, pdo: CanFramePipe) -> None:
         self.main, self.pdo = main, pdo
         super().__init__(channel=main.channel_info)
 
@@ -172,12 +203,13 @@ class SplitBus(can.BusABC):
         super().shutdown()
 
 
-def _serve_simulator(sock: socket.socket, pdo_sock: Optional[socket.socket], axes: int, ready, stop) -> None:
+def _serve_simulator(sock: socket.socket, pdo_sock: Optional[socket.socket], pdo_sent, axes: int, ready,
+                     stop) -> None:
     """The simulator process: ``axes`` virtual EPOS4 on ``sock`` (TxPDOs on
-    ``pdo_sock`` when given) until ``stop`` is set."""
+    ``pdo_sock`` when given, counted in ``pdo_sent``) until ``stop`` is set."""
     bus: can.BusABC = PipeBus(sock, "simulator")
     if pdo_sock is not None:
-        bus = SplitBus(bus, PipeBus(pdo_sock, "simulator_pdo"))
+        bus = SplitBus(bus, CanFramePipe(pdo_sock, pdo_sent))
     sim = Simulator(bus, [NodeConfig(i, DCF) for i in range(1, axes + 1)], tick=0.005).start()
     ready.set()
     stop.wait()
@@ -190,14 +222,16 @@ class SimulatorProcess:
     module text), forked before this process starts any thread."""
 
     def __init__(self, axes: int, pdo_pipe: bool = False) -> None:
-        """``pdo_pipe``: the TxPDOs come on a pipe of their own (``pdo_sock``)."""
+        """``pdo_pipe``: the TxPDOs come on a pipe of their own (``pdo_sock``,
+        SocketCAN frames; ``pdo_sent`` counts them)."""
         ctx = multiprocessing.get_context("fork")
+        self.pdo_sent = ctx.Value("Q", 0)
         mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         pdo_mine, pdo_theirs = (socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET) if pdo_pipe
                                 else (None, None))
         self.stop_event = ctx.Event()
         ready = ctx.Event()
-        self.process = ctx.Process(target=_serve_simulator, args=(theirs, pdo_theirs, axes, ready, self.stop_event),
+        self.process = ctx.Process(target=_serve_simulator, args=(theirs, pdo_theirs, self.pdo_sent, axes, ready, self.stop_event),
                                    name="virtual_epos4", daemon=True)
         self.process.start()
         theirs.close()
@@ -274,7 +308,7 @@ def thread_label(name: str) -> str:
     return {"epos4_driver_cycle": "cycle", "virtual_epos4": "simulator", "MainThread": "main"}.get(name, name)
 
 
-def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True, pdo_bus: Optional[SinkBus] = None
+def run_driver(bus: SinkBus, axes: int, layout: str, switch: bool = True, pdo_bus: Optional[socket.socket] = None
                ) -> dict:
     from maxon_epos4_ros_canopen.config import load_config
     from maxon_epos4_ros_canopen.driver import Driver
@@ -538,11 +572,12 @@ def main() -> int:
     args = ap.parse_args()
     if args.ratio:
         return ratio(args.axes, args.rounds, args.seconds, args.plot)
-    # the driver reads its TxPDOs on a pipe of their own, as on SocketCAN
-    # (driver/cycle_reception.py); the loops written here read one socket
+    # the driver reads its TxPDOs on a pipe of their own with its SocketCAN
+    # receiver, as on SocketCAN (driver/cycle_reception.py); the loops
+    # written here read one socket through python-can, as their users do
     sim = SimulatorProcess(args.axes, pdo_pipe=args.impl == "driver")
     bus = SinkBus(PipeBus(sim.sock, "master"))
-    pdo_bus = SinkBus(PipeBus(sim.pdo_sock, "master_pdo")) if sim.pdo_sock is not None else None
+    pdo_bus = sim.pdo_sock
     out = {"impl": args.impl, "axes": args.axes, "layout": args.layout if args.impl != "baseline" else "dcf"}
     run = None
     try:
@@ -565,14 +600,14 @@ def main() -> int:
                 run = run_baseline(bus, args.axes)
             time.sleep(0.5)  # settle: mode switch done, targets moving
             bus.sinking = True
-            if pdo_bus is not None:
-                pdo_bus.sinking = True
+            pdo_sent0 = sim.pdo_sent.value
             threads0 = thread_cpu()
             cpu0, sim0, wall0 = time.process_time(), sim.cpu_seconds(), time.monotonic()
             sync0 = bus.sent[SYNC_ID]
             time.sleep(args.seconds)
             cpu, sim_cpu, wall = time.process_time() - cpu0, sim.cpu_seconds() - sim0, time.monotonic() - wall0
             threads1 = thread_cpu()
+            pdo_sent = sim.pdo_sent.value - pdo_sent0
             syncs = bus.sent[SYNC_ID] - sync0
             cycles = max(1, syncs)
             master_cpu = cpu  # the simulator's CPU is its own process's
@@ -582,8 +617,7 @@ def main() -> int:
                 "cpu_per_axis_us": master_cpu / cycles / args.axes * 1e6,
                 "sim_cpu_share": sim_cpu / wall,
                 "rx_pdos_per_axis": sum(n for k, n in bus.sent.items() if 0x200 <= k < 0x580) / cycles / args.axes,
-                "tx_pdos_per_axis": (sum(bus.received.values()) + (
-                    sum(pdo_bus.received.values()) if pdo_bus is not None else 0)) / cycles / args.axes,
+                "tx_pdos_per_axis": (sum(bus.received.values()) + pdo_sent) / cycles / args.axes,
             })
             out["pdos_per_axis"] = out["rx_pdos_per_axis"] + out["tx_pdos_per_axis"]
             # per thread of the master, us per axis per cycle (the simulator runs in its own process)
@@ -597,7 +631,7 @@ def main() -> int:
         sim.stop()
         bus.shutdown()
         if pdo_bus is not None:
-            pdo_bus.shutdown()
+            pdo_bus.close()
     out["rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print(json.dumps(out))
     return 0 if out["ok"] else 1

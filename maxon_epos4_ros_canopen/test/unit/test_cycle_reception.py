@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import socket
 import struct
+import time
 from typing import List, Optional, Tuple
 
 import can
@@ -16,7 +17,8 @@ from maxon_epos4_ros_canopen.clock import SteppedClock
 from maxon_epos4_ros_canopen.config import load_config
 from maxon_epos4_ros_canopen.driver import Driver
 from maxon_epos4_ros_canopen.driver.cycle_reception import (
-    CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, MIN_BUDGET, SO_TIMESTAMPNS, CycleReception, Received, parse_frame)
+    CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, MIN_BUDGET, SO_TIMESTAMPNS, CycleReception, RawCanReceiver, Received,
+    parse_frame)
 from maxon_epos4_ros_canopen.driver.pdo import TpdoReceiver, sync_driven
 from maxon_epos4_ros_canopen.sim import NodeConfig, Simulator
 
@@ -56,6 +58,44 @@ def test_a_stamp_of_another_kind_or_too_short_is_no_stamp():
     frame = can_frame(0x181, b"\x00\x00")
     assert parse_frame(frame, [(socket.SOL_SOCKET, 29, struct.pack("@ll", 5, 0))])[2] is None
     assert parse_frame(frame, [(socket.SOL_SOCKET, SO_TIMESTAMPNS, b"\x01\x02")])[2] is None
+
+
+# -------------------------------------------------------- RawCanReceiver
+def test_the_socketcan_receiver_takes_standard_data_frames_with_their_kernel_stamps():
+    """RawCanReceiver on a socket that carries SocketCAN frames (a
+    socketpair here): each standard data frame with the kernel's receive
+    stamp, a short one with its length (the TPDO receiver rejects it);
+    extended, remote, error, oversized, truncated and CAN FD sized frames
+    are no frames; at most ``limit`` a read; an empty socket ends a read."""
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    receiver = RawCanReceiver(mine, owned=False)
+    try:
+        before = time.time()
+        for frame in (can_frame(0x181, b"\x37\x02\x10\x00"),
+                      can_frame(0x181 | CAN_EFF_FLAG, b"\x37\x02"),
+                      can_frame(0x181 | CAN_RTR_FLAG, b""),
+                      can_frame(0x181 | CAN_ERR_FLAG, bytes(8)),
+                      can_frame(0x181, bytes(8), length=9),
+                      can_frame(0x181, bytes(8))[:12],
+                      can_frame(0x181, bytes(8)) + bytes(56),  # a CAN FD frame's size
+                      can_frame(0x281, b"\x01"),
+                      can_frame(SYNC, b"")):
+            theirs.send(frame)
+        after = time.time()
+        frames, error = receiver.take(2)
+        assert error is None
+        assert [(c, d) for c, d, _ in frames] == [(0x181, b"\x37\x02\x10\x00"), (0x281, b"\x01")]
+        assert all(before - 0.001 <= t <= after + 0.001 for _, _, t in frames)
+        assert [(c, d) for c, d, _ in receiver.take(10)[0]] == [(SYNC, b"")]
+        assert receiver.take(10) == ([], None)
+    finally:
+        receiver.close()
+    theirs.send(can_frame(0x181, bytes(6)))
+    assert len(mine.recv(16)) == 16  # not the receiver's to close
+    owned = RawCanReceiver(theirs)
+    owned.close()
+    assert theirs.fileno() == -1
+    mine.close()
 
 
 # --------------------------------------------------------- CycleReception
@@ -217,3 +257,53 @@ def test_a_driver_given_a_bus_reads_its_txpdos_from_the_pdo_bus_given_beside_it(
         sim.stop()
         for b in (sim_bus, bus, pdo_bus):
             b.shutdown()
+
+
+def test_a_driver_given_a_socket_reads_its_txpdos_from_it_as_socketcan_frames(clock):
+    """Driver(config, bus=..., pdo_bus=<socket>): the drives' TxPDOs come
+    as SocketCAN frames on a socket (a socketpair, as the cycle benchmark
+    runs the driver), read by the driver's SocketCAN receiver; a short
+    forged statusword frame on it is counted, an extended one ignored, and
+    the caller's socket stays open after close."""
+    channel = "pdo_socket_given"
+    sim_bus = can.Bus(interface="virtual", channel=channel)
+    bus = can.Bus(interface="virtual", channel=channel)
+    mine, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    real_send = sim_bus.send
+
+    def send(msg, timeout=None):
+        """The simulated drive's TxPDOs go to the socket alone."""
+        if 0x180 <= msg.arbitration_id < 0x500:
+            theirs.send(can_frame(msg.arbitration_id, bytes(msg.data)))
+        else:
+            real_send(msg, timeout)
+    sim_bus.send = send
+    sim = Simulator(sim_bus, [NodeConfig(1, DCF1)], clock=clock).start()
+    params = {"bus": {"device": "virtual:" + channel}, "sync": {"interval_ms": SYNC_MS, "overflow": 0},
+              "nodes": {"node1": {"id": 1, "name": J1, "eds_file": DCF1}},
+              "defaults": {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_device": "vel",
+                           "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0",
+                           "switching_state": 2}}
+    d = Driver(load_config(params, "test"), bus=bus, pdo_bus=mine, clock=clock, state_timeout=10.0)
+    try:
+        assert d.init().success
+        assert d.switch_mode([J1], 1).success
+        assert d.set_command(J1, "position", 2000).success
+        assert clock.wait_until(lambda: abs(d.joints[J1].position - 2000) < 5, 10.0)
+        bad = d.joints[J1].counters.get("bad_tpdo", 0)
+        theirs.send(can_frame(STATUS_TPDO, b"\x08"))  # a forged short statusword
+        theirs.send(can_frame(STATUS_TPDO | CAN_EFF_FLAG, b"\x08\x00"))  # extended: no TxPDO of a drive
+        assert clock.wait_until(lambda: d.joints[J1].counters.get("bad_tpdo", 0) == bad + 1, 10.0)
+        cycles = d.cycles
+        assert clock.wait_until(lambda: d.cycles >= cycles + 5, 10.0)
+        assert d.joints[J1].counters.get("bad_tpdo", 0) == bad + 1
+        assert d.joints[J1].state == State.OPERATION_ENABLED and d.joints[J1].error is None
+    finally:
+        d.close()
+        sim.stop()
+        sim_bus.shutdown()
+        bus.shutdown()
+    theirs.send(can_frame(STATUS_TPDO, bytes(6)))
+    assert len(mine.recv(16)) == 16  # the caller's socket: still open
+    mine.close()
+    theirs.close()

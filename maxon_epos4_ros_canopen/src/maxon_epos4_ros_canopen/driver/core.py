@@ -12,7 +12,8 @@ its fields (cycle.py states the rule and who owns what):
 from __future__ import annotations
 
 import queue
-from typing import Any, Callable, Dict, List, Mapping, Optional
+import socket
+from typing import Any, Callable, Dict, List, Mapping, Optional, Union
 
 import can
 
@@ -63,14 +64,16 @@ class Driver:
                  boot_timeout: float = 5.0, state_timeout: float = 5.0,
                  homing_timeout: float = 60.0, sdo_timeout: float = 1.0, cycle_join_timeout: float = 5.0,
                  shutdown_timeout: Optional[float] = None, clock: Optional[Clock] = None,
-                 pdo_bus: Optional[can.BusABC] = None) -> None:
+                 pdo_bus: Union[can.BusABC, socket.socket, None] = None) -> None:
         """``clock``: every timer and wait of the driver (real time unless
         given: a test's stepped clock runs the driver on virtual time).
         ``shutdown_timeout``: the deadline of shutdown and close as a whole
         (the configuration's ``timeouts/shutdown`` unless given).
         ``pdo_bus``: with ``bus``, a bus that carries the drives' TxPDOs
         and SYNC (and may carry more), which the cycle reads itself
-        (driver/cycle_reception.py); without it a given bus's TxPDOs come
+        (driver/cycle_reception.py), or a socket that carries them as
+        SocketCAN frames (``struct can_frame``), read as on SocketCAN (the
+        caller closes it); without it a given bus's TxPDOs come
         through the notifier thread. A bus the driver opens itself gets
         its own on SocketCAN (and python-can's virtual bus in stepped
         runs)."""

@@ -22,7 +22,8 @@ COB-ID cannot keep the cycle from sending; the rest wait for the next one.
 
 Receivers:
 
-* ``RawCanReceiver``: a SocketCAN raw socket of its own, kernel-filtered.
+* ``RawCanReceiver``: a SocketCAN raw socket of its own, kernel-filtered
+  (or a socket a caller gives that carries SocketCAN frames).
 * ``BusReceiver``: any python-can bus that carries those frames (a second
   python-can virtual bus on the driver's channel in stepped runs, or a bus
   a caller gives), read through the clock (clock.Clock.frame_reader): a
@@ -44,7 +45,7 @@ import can
 
 from ..can_device import ArrivalClock, enlarge_receive_buffer
 from ..clock import Clock, FrameReader
-from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_MTU, CAN_RTR_FLAG, CAN_SFF_MASK, SO_TIMESTAMPNS, decode
+from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_MTU, CAN_RTR_FLAG, CAN_SFF_MASK, SO_TIMESTAMPNS
 from .bus import SYNC_COB_ID
 from .pdo import TpdoReceiver
 
@@ -58,6 +59,11 @@ CYCLE_TASK = "epos4_driver_cycle"
 Received = Tuple[int, bytes, Optional[float]]
 
 _FILTER = struct.Struct("=II")  # struct can_filter: can_id, can_mask
+_CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: can_id, len, padding, data
+_STAMP = struct.Struct("@ll")  # struct timespec of SO_TIMESTAMPNS
+_NOT_DATA = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
+_SOL_SOCKET = socket.SOL_SOCKET
+_MSG_TRUNC = socket.MSG_TRUNC
 # per frame read, per expected frame of a cycle: room for a late cycle's backlog
 BUDGET_PER_FRAME = 8
 MIN_BUDGET = 64
@@ -67,60 +73,81 @@ ERROR_LOG_INTERVAL = 1.0  # s
 def parse_frame(frame: bytes, ancillary: Iterable[Tuple[int, int, bytes]]) -> Optional[Received]:
     """A SocketCAN ``struct can_frame`` and its receive stamp as a
     Received; None for what is no classic standard data frame (extended,
-    remote, error, CAN FD, a length over 8, truncated)."""
-    if len(frame) != CAN_MTU or frame[4] > 8:
+    remote, error, CAN FD, a length over 8, truncated). The cycle parses
+    every TxPDO here: one struct call for the frame, none for its layers."""
+    if len(frame) != CAN_MTU:
         return None
-    can_id, data, stamp = decode(frame, list(ancillary))
-    if can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG):
+    can_id, length, data = _CAN_FRAME.unpack(frame)
+    if can_id & _NOT_DATA or length > 8:
         return None
-    return can_id, data, stamp or None
+    stamp = None
+    for level, kind, raw in ancillary:
+        if level == _SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= _STAMP.size:
+            seconds, nanoseconds = _STAMP.unpack_from(raw)
+            stamp = (seconds + nanoseconds * 1e-9) or None  # python-can's own sum: the same float
+    return can_id, data[:length], stamp
 
 
 class RawCanReceiver:
-    """A SocketCAN raw socket on ``channel`` that receives only standard
-    data frames on ``cob_ids``, read without blocking.
+    """SocketCAN frames read straight from a socket, without blocking:
+    ``open`` makes a raw CAN socket on a channel that receives only standard
+    data frames on given COB-IDs; a socket given (a socketpair that carries
+    ``struct can_frame`` as a CAN_RAW socket reads them: the cycle
+    benchmark's) is read the same way.
 
     Written by hand, not a second python-can SocketcanBus: python-can's
     receive makes a select() before every read, and here the cycle reads
     until the socket is empty: one system call per frame instead of two,
     where a system call costs tens of microseconds (user-mode Linux)."""
 
-    def __init__(self, channel: str, cob_ids: Iterable[int]) -> None:
+    def __init__(self, sock: socket.socket, owned: bool = True) -> None:
+        """``owned``: close() closes the socket."""
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        sock.setblocking(False)
+        self._sock = sock
+        self._owned = owned
+        self._ancillary = socket.CMSG_SPACE(16)  # one struct timespec
+
+    @classmethod
+    def open(cls, channel: str, cob_ids: Iterable[int]) -> "RawCanReceiver":
+        """A raw CAN socket of its own on ``channel``, kernel-filtered to
+        standard data frames on ``cob_ids``."""
         sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
         try:
             mask = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_SFF_MASK  # this id, standard, data frames only
             filters = b"".join(_FILTER.pack(c, mask) for c in sorted(set(cob_ids)))
             sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, filters)
-            sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
             enlarge_receive_buffer(sock)
             sock.bind((channel,))
-            sock.setblocking(False)
+            return cls(sock)
         except BaseException:
             sock.close()
             raise
-        self._sock = sock
-        self._ancillary = socket.CMSG_SPACE(16)  # one struct timespec
 
     def take(self, limit: int) -> Tuple[List[Received], Optional[BaseException]]:
         """Up to ``limit`` frames waiting, oldest first, and the receive
         error that ended the read (None: the socket was empty or the limit
         reached)."""
         out: List[Received] = []
+        append, parse = out.append, parse_frame
         recvmsg, size, ancillary = self._sock.recvmsg, CAN_MTU, self._ancillary
         while len(out) < limit:
             try:
-                frame, anc, _flags, _addr = recvmsg(size, ancillary)
+                frame, anc, flags, _addr = recvmsg(size, ancillary)
             except BlockingIOError:
                 return out, None
             except OSError as e:  # ENETDOWN once when the interface goes down, EBADF once closed
                 return out, e
-            received = parse_frame(frame, anc)
+            if flags & _MSG_TRUNC:  # longer than a can_frame (CAN FD): cut to its size, it would pass for one
+                continue
+            received = parse(frame, anc)
             if received is not None:
-                out.append(received)
+                append(received)
         return out, None
 
     def close(self) -> None:
-        self._sock.close()
+        if self._owned:
+            self._sock.close()
 
 
 class BusReceiver:

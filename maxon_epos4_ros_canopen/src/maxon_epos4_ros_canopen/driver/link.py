@@ -13,9 +13,10 @@ receiver's latest-frame slots. The cycle reads ``bus``, ``receiver``,
 from __future__ import annotations
 
 import logging
+import socket
 import threading
 from types import MappingProxyType
-from typing import Any, Callable, Dict, Mapping, Optional
+from typing import Any, Callable, Dict, Mapping, Optional, Union
 
 import can
 import canopen
@@ -109,9 +110,10 @@ class Link:
 
     def __init__(self, config: DriverConfig, nodes: NodeTable, timeouts: Timeouts,
                  post: Callable[[Any], None], external_bus: Optional[can.BusABC] = None,
-                 clock: Clock = REAL, pdo_bus: Optional[can.BusABC] = None) -> None:
+                 clock: Clock = REAL, pdo_bus: Union[can.BusABC, socket.socket, None] = None) -> None:
         """``pdo_bus``: with ``external_bus``, a bus that carries the
-        drives' TxPDOs and SYNC to the cycle (see cycle_reception.py)."""
+        drives' TxPDOs and SYNC to the cycle, or a socket that carries them
+        as SocketCAN frames (see cycle_reception.py)."""
         self.config = config
         # Every timer and wait of the driver's parts: real time, or a test's
         # stepped clock (clock.py); the parts take it from here.
@@ -209,12 +211,14 @@ class Link:
         bus, clock = self.bus, self.clock
         source: Any = None
         try:
-            if self.pdo_bus is not None:
+            if isinstance(self.pdo_bus, socket.socket):
+                source = RawCanReceiver(self.pdo_bus, owned=False)
+            elif self.pdo_bus is not None:
                 source = BusReceiver(clock.frame_reader(self.pdo_bus, CYCLE_TASK), ids)
             elif self.external_bus is not None:
                 return None  # a caller's bus: no second receiver on it
             elif is_socketcan(bus) and not clock.stepped:
-                source = RawCanReceiver(bus.channel, ids)
+                source = RawCanReceiver.open(bus.channel, ids)
             elif isinstance(bus, VirtualBus) and clock.stepped:
                 # Stepped runs take the cycle's own receiver; on the wall
                 # clock python-can's virtual bus keeps the notifier's path
