@@ -135,6 +135,23 @@ def test_frames_count_from_their_kernel_stamp_not_from_when_the_cycle_reads_them
     assert abs(r.lag() - 0.003) < 1e-6
 
 
+def test_the_lag_is_none_once_a_read_finds_nothing_waiting(clock):
+    """A receiver that found its socket empty is behind by nothing: drives
+    that went silent must not leave the last frame's wait in diagnostics."""
+    r, _, source = reception(clock)
+    clock.advance(1.0)
+    source.waiting = [(STATUS_TPDO, bytes(6), clock.wall() - 0.003)]
+    r.poll(clock.now())
+    assert abs(r.lag() - 0.003) < 1e-6
+    clock.advance(0.01)
+    assert r.poll(clock.now()) == 0
+    assert r.lag() == 0.0
+    source.error = OSError(100, "Network is down")
+    clock.advance(0.01)
+    r.poll(clock.now())
+    assert r.lag() == 0.0  # an error read nothing and tells nothing of a backlog
+
+
 def test_a_frame_of_the_wrong_length_is_counted_and_never_taken(clock):
     r, receiver, source = reception(clock)
     source.waiting = [(STATUS_TPDO, bytes(6), None), (STATUS_TPDO, b"\xff\xff", None)]

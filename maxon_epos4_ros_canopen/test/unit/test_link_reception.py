@@ -79,3 +79,28 @@ def test_a_receive_error_is_handled_and_cleared_for_canopen():
     r._notifier.exception = OSError("interface down")
     r.on_error(OSError("interface down"))
     assert r._notifier.exception is None
+
+
+def test_the_receive_lag_is_the_latest_frames_wait_while_frames_still_wait_and_none_once_all_are_read():
+    """receive_lag_ms in diagnostics: a notifier that read a frame 0.5 s
+    after it arrived is 0.5 s behind while frames still wait unread; once
+    it has read everything that came, it is behind by nothing, whatever the
+    last frame's wait was (a bus that went quiet after a storm must not
+    show the storm's backlog for ever). Where the adapter cannot tell what
+    waits, the latest frame's wait is all there is."""
+    clock = SteppedClock(100.0)
+    waiting = [True]
+    stamps = ReceiveClock(lambda: waiting[0], clock=clock)
+    clock.advance(1.0)
+    stamps.on_message_received(frame_at(clock.wall() - 0.5))
+    assert abs(stamps.lag() - 0.5) < 1e-6
+    waiting[0] = False
+    assert stamps.lag() == 0.0
+    blind = ReceiveClock(None, clock=clock)
+    blind.on_message_received(frame_at(clock.wall() - 0.5))
+    assert abs(blind.lag() - 0.5) < 1e-6
+    assert not blind.unread_before(clock.now() + 1.0)  # nothing known to wait: an SDO timeout counts as read
+
+
+def frame_at(stamp):
+    return can.Message(arbitration_id=0x581, data=b"\x01", is_extended_id=False, timestamp=stamp)

@@ -195,12 +195,12 @@ class HeartbeatProducer:
             self._task = None
 
 
-def unread_frames(bus: can.BusABC) -> Callable[[], bool]:
+def unread_frames(bus: can.BusABC) -> Optional[Callable[[], bool]]:
     """Whether frames wait in ``bus``'s receive queue that its reader has not
     taken yet. python-can has no such question; SocketCAN answers it with a
     select() that takes nothing, python-can's virtual bus with its queue.
-    Other adapters buffer in their vendor's library, out of sight: there the
-    answer is always no."""
+    Other adapters buffer in their vendor's library, out of sight: None,
+    no answer."""
     sock = getattr(bus, "socket", None)
     if is_socketcan(bus) and sock is not None:
         def socket_readable() -> bool:
@@ -212,7 +212,7 @@ def unread_frames(bus: can.BusABC) -> Callable[[], bool]:
     pending = getattr(bus, "queue", None)
     if pending is not None and callable(getattr(pending, "empty", None)):
         return lambda: not pending.empty()
-    return lambda: False
+    return None
 
 
 class ReceiveClock(can.Listener):
@@ -232,12 +232,15 @@ class ReceiveClock(can.Listener):
     immutable tuple: (monotonic time the latest frame was read, when it
     arrived)."""
 
-    def __init__(self, unread: Callable[[], bool] = lambda: False, max_lag: float = MAX_RECEIVE_LAG,
+    def __init__(self, unread: Optional[Callable[[], bool]] = None, max_lag: float = MAX_RECEIVE_LAG,
                  clock: Clock = REAL) -> None:
+        """``unread``: whether frames wait unread (unread_frames; None: the
+        adapter cannot tell, and none are taken to wait)."""
         self._now = clock.now
         now = self._now()
         self.progress: Tuple[float, float] = (now, now)
-        self._unread = unread
+        self._unread_known = unread is not None
+        self._unread: Callable[[], bool] = unread if unread is not None else (lambda: False)
         self._arrival = ArrivalClock(clock.now, max_lag=max_lag, wall=clock.wall)
         self.max_lag = max_lag  # the longest backlog it can tell (can_device.max_receive_lag)
 
@@ -250,7 +253,12 @@ class ReceiveClock(can.Listener):
         return self.progress
 
     def lag(self) -> float:
-        """How long the latest frame read had waited in the receive queue (s)."""
+        """How far the notifier is behind (s): how long the latest frame read
+        had waited in the receive queue while frames still wait unread, 0
+        once it has read all that came (a bus gone quiet after a burst is
+        no backlog). Where the adapter cannot tell, the latest frame's wait."""
+        if self._unread_known and not self._unread():
+            return 0.0
         read_at, arrived = self.progress
         return read_at - arrived
 

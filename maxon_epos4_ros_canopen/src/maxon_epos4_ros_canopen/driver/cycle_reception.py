@@ -226,6 +226,8 @@ class CycleReception:
             self.frames += len(frames)
             if len(frames) >= limit:
                 self.full_reads += 1
+        elif error is None:  # nothing waited: behind by nothing, whatever the last frame's wait
+            self.progress = (now, now)
         if error is not None:
             self.errors += 1
             self.last_error = error
@@ -235,7 +237,8 @@ class CycleReception:
         return len(frames)
 
     def lag(self) -> float:
-        """How long the latest frame read had waited (s)."""
+        """How long the latest frame read had waited (s); 0 once a read
+        found nothing waiting."""
         read_at, arrived = self.progress
         return read_at - arrived
 
