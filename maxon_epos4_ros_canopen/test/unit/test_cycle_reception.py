@@ -239,6 +239,27 @@ def test_a_flood_of_short_statusword_frames_is_counted_while_the_cycle_runs_ever
     assert rig.until(lambda: abs(rig.read(0x6064) - 1500) < 5)
 
 
+def driver_moved_beside(clock, channel: str, bus, pdo_bus) -> Driver:
+    """A driver of node 1 on ``bus`` (virtual channel ``channel``) that reads
+    its TxPDOs from ``pdo_bus``, initialized in profile position and moved
+    to 2000: its readings show that the TxPDOs reach it. The caller closes it."""
+    params = {"bus": {"device": "virtual:" + channel}, "sync": {"interval_ms": SYNC_MS, "overflow": 0},
+              "nodes": {"node1": {"id": 1, "name": J1, "eds_file": DCF1}},
+              "defaults": {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_device": "vel",
+                           "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0",
+                           "switching_state": 2}}
+    d = Driver(load_config(params, "test"), bus=bus, pdo_bus=pdo_bus, clock=clock, state_timeout=10.0)
+    try:
+        assert d.init().success
+        assert d.switch_mode([J1], 1).success
+        assert d.set_command(J1, "position", 2000).success
+        assert clock.wait_until(lambda: abs(d.joints[J1].position - 2000) < 5, 10.0)
+    except BaseException:
+        d.close()
+        raise
+    return d
+
+
 def test_a_driver_given_a_bus_reads_its_txpdos_from_the_pdo_bus_given_beside_it(clock):
     """Driver(config, bus=..., pdo_bus=...): the caller's bus for
     everything, a second one on the same channel for the cycle's TxPDOs
@@ -258,19 +279,9 @@ def test_a_driver_given_a_bus_reads_its_txpdos_from_the_pdo_bus_given_beside_it(
                 return msg
     bus.recv = recv
     sim = Simulator(sim_bus, [NodeConfig(1, DCF1)], clock=clock).start()
-    params = {"bus": {"device": "virtual:" + channel}, "sync": {"interval_ms": SYNC_MS, "overflow": 0},
-              "nodes": {"node1": {"id": 1, "name": J1, "eds_file": DCF1}},
-              "defaults": {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_device": "vel",
-                           "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0",
-                           "switching_state": 2}}
-    d = Driver(load_config(params, "test"), bus=bus, pdo_bus=pdo_bus, clock=clock, state_timeout=10.0)
     try:
-        assert d.init().success
-        assert d.switch_mode([J1], 1).success
-        assert d.set_command(J1, "position", 2000).success
-        assert clock.wait_until(lambda: abs(d.joints[J1].position - 2000) < 5, 10.0)
+        driver_moved_beside(clock, channel, bus, pdo_bus).close()
     finally:
-        d.close()
         sim.stop()
         for b in (sim_bus, bus, pdo_bus):
             b.shutdown()
@@ -296,17 +307,8 @@ def test_a_driver_given_a_socket_reads_its_txpdos_from_it_as_socketcan_frames(cl
             real_send(msg, timeout)
     sim_bus.send = send
     sim = Simulator(sim_bus, [NodeConfig(1, DCF1)], clock=clock).start()
-    params = {"bus": {"device": "virtual:" + channel}, "sync": {"interval_ms": SYNC_MS, "overflow": 0},
-              "nodes": {"node1": {"id": 1, "name": J1, "eds_file": DCF1}},
-              "defaults": {"pos_to_device": "pos", "pos_from_device": "obj6064", "vel_to_device": "vel",
-                           "vel_from_device": "obj606C", "eff_to_device": "rint(eff)", "eff_from_device": "0",
-                           "switching_state": 2}}
-    d = Driver(load_config(params, "test"), bus=bus, pdo_bus=mine, clock=clock, state_timeout=10.0)
+    d = driver_moved_beside(clock, channel, bus, mine)
     try:
-        assert d.init().success
-        assert d.switch_mode([J1], 1).success
-        assert d.set_command(J1, "position", 2000).success
-        assert clock.wait_until(lambda: abs(d.joints[J1].position - 2000) < 5, 10.0)
         bad = d.joints[J1].counters.get("bad_tpdo", 0)
         theirs.send(can_frame(STATUS_TPDO, b"\x08"))  # a forged short statusword
         theirs.send(can_frame(STATUS_TPDO | CAN_EFF_FLAG, b"\x08\x00"))  # extended: no TxPDO of a drive
