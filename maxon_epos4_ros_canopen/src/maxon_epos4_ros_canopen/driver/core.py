@@ -72,8 +72,8 @@ class Driver:
         ``pdo_bus``: with ``bus``, a bus that carries the drives' TxPDOs
         and SYNC (and may carry more), which the cycle reads itself
         (driver/cycle_reception.py), or a socket that carries them as
-        SocketCAN frames (``struct can_frame``), read as on SocketCAN (the
-        caller closes it); without it a given bus's TxPDOs come
+        SocketCAN frames (``struct can_frame``), read as on SocketCAN (made
+        non-blocking; the caller closes it); without it a given bus's TxPDOs come
         through the notifier thread. A bus the driver opens itself gets
         its own on SocketCAN (and python-can's virtual bus in stepped
         runs)."""

@@ -74,7 +74,7 @@ def parse_frame(frame: bytes, ancillary: Iterable[Tuple[int, int, bytes]]) -> Op
     """A SocketCAN ``struct can_frame`` and its receive stamp as a
     Received; None for what is no classic standard data frame (extended,
     remote, error, CAN FD, a length over 8, truncated). The cycle parses
-    every TxPDO here: one struct call for the frame, none for its layers."""
+    every TxPDO here, with one struct call per frame."""
     if len(frame) != CAN_MTU:
         return None
     can_id, length, data = _CAN_FRAME.unpack(frame)
@@ -101,7 +101,8 @@ class RawCanReceiver:
     where a system call costs tens of microseconds (user-mode Linux)."""
 
     def __init__(self, sock: socket.socket, owned: bool = True) -> None:
-        """``owned``: close() closes the socket."""
+        """Reads ``sock`` (made non-blocking, with kernel receive stamps);
+        ``owned``: close() closes it."""
         sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         sock.setblocking(False)
         self._sock = sock
