@@ -231,7 +231,8 @@ class SimulatorProcess:
                                 else (None, None))
         self.stop_event = ctx.Event()
         ready = ctx.Event()
-        self.process = ctx.Process(target=_serve_simulator, args=(theirs, pdo_theirs, self.pdo_sent, axes, ready, self.stop_event),
+        self.process = ctx.Process(target=_serve_simulator,
+                                   args=(theirs, pdo_theirs, self.pdo_sent, axes, ready, self.stop_event),
                                    name="virtual_epos4", daemon=True)
         self.process.start()
         theirs.close()
