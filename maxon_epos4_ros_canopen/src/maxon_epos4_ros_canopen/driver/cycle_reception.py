@@ -63,7 +63,7 @@ _CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: can_id, len, padding,
 _STAMP = struct.Struct("@ll")  # struct timespec of SO_TIMESTAMPNS
 _NOT_DATA = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
 _SOL_SOCKET = socket.SOL_SOCKET
-_MSG_TRUNC = socket.MSG_TRUNC
+_MSG_TRUNC = int(socket.MSG_TRUNC)  # a plain int: an enum flag in the & costs more than the read
 # per frame read, per expected frame of a cycle: room for a late cycle's backlog
 BUDGET_PER_FRAME = 8
 MIN_BUDGET = 64
