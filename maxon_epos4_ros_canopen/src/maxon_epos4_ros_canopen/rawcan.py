@@ -16,7 +16,7 @@ from __future__ import annotations
 import select
 import socket
 import struct
-from typing import Any, Optional, Tuple
+from typing import Any, Iterable, Optional, Tuple
 
 # struct can_frame / canfd_frame: can_id, len, flags (FD), reserved, len8_dlc, then the data
 _HEADER = struct.Struct("=IBB1xB")
@@ -56,14 +56,21 @@ def encode(cob_id: int, data: bytes, remote: bool) -> bytes:
     return _HEADER.pack(cob_id, len(data), 0, len(data)) + bytes(data).ljust(8, b"\x00")
 
 
-def decode(frame: bytes, ancillary: list) -> Frame:
-    """One frame as recvmsg returned it, with its SO_TIMESTAMPNS time stamp."""
-    can_id, length, _, _ = _HEADER.unpack_from(frame)
+def kernel_stamp(ancillary: Iterable[Tuple[int, int, bytes]]) -> float:
+    """The SO_TIMESTAMPNS receive stamp among recvmsg's ancillary data, on
+    the wall clock (0.0: none)."""
     stamp = 0.0
     for level, kind, data in ancillary:
         if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _STAMP.size:
             seconds, nanoseconds = _STAMP.unpack_from(data)
             stamp = seconds + nanoseconds * 1e-9  # python-can's own sum: the same float
+    return stamp
+
+
+def decode(frame: bytes, ancillary: list) -> Frame:
+    """One frame as recvmsg returned it, with its SO_TIMESTAMPNS time stamp."""
+    can_id, length, _, _ = _HEADER.unpack_from(frame)
+    stamp = kernel_stamp(ancillary)
     if can_id & CAN_RTR_FLAG:
         return can_id, b"", stamp  # python-can's Message keeps no data for a remote frame
     return can_id, bytes(frame[8:8 + length]), stamp

@@ -239,8 +239,7 @@ class ReceiveClock(can.Listener):
         self._now = clock.now
         now = self._now()
         self.progress: Tuple[float, float] = (now, now)
-        self._unread_known = unread is not None
-        self._unread: Callable[[], bool] = unread if unread is not None else (lambda: False)
+        self._unread = unread
         self._arrival = ArrivalClock(clock.now, max_lag=max_lag, wall=clock.wall)
         self.max_lag = max_lag  # the longest backlog it can tell (can_device.max_receive_lag)
 
@@ -257,7 +256,7 @@ class ReceiveClock(can.Listener):
         had waited in the receive queue while frames still wait unread, 0
         once it has read all that came (a bus gone quiet after a burst is
         no backlog). Where the adapter cannot tell, the latest frame's wait."""
-        if self._unread_known and not self._unread():
+        if self._unread is not None and not self._unread():
             return 0.0
         read_at, arrived = self.progress
         return read_at - arrived
@@ -268,4 +267,4 @@ class ReceiveClock(can.Listener):
         ``t`` or later, and the receive queue is not empty. Frames are read
         in the order they came, so once one that arrived after ``t`` has
         been read, all those before it have been too."""
-        return self.progress[1] < t and self._unread()
+        return self.progress[1] < t and self._unread is not None and self._unread()

@@ -45,7 +45,7 @@ import can
 
 from ..can_device import ArrivalClock, enlarge_receive_buffer
 from ..clock import Clock, FrameReader
-from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_MTU, CAN_RTR_FLAG, CAN_SFF_MASK, SO_TIMESTAMPNS
+from ..rawcan import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_MTU, CAN_RTR_FLAG, CAN_SFF_MASK, SO_TIMESTAMPNS, kernel_stamp
 from .bus import SYNC_COB_ID
 from .pdo import TpdoReceiver
 
@@ -60,9 +60,7 @@ Received = Tuple[int, bytes, Optional[float]]
 
 _FILTER = struct.Struct("=II")  # struct can_filter: can_id, can_mask
 _CAN_FRAME = struct.Struct("=IB3x8s")  # struct can_frame: can_id, len, padding, data
-_STAMP = struct.Struct("@ll")  # struct timespec of SO_TIMESTAMPNS
 _NOT_DATA = CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG
-_SOL_SOCKET = socket.SOL_SOCKET
 _MSG_TRUNC = int(socket.MSG_TRUNC)  # a plain int: an enum flag in the & costs more than the read
 # per frame read, per expected frame of a cycle: room for a late cycle's backlog
 BUDGET_PER_FRAME = 8
@@ -80,12 +78,7 @@ def parse_frame(frame: bytes, ancillary: Iterable[Tuple[int, int, bytes]]) -> Op
     can_id, length, data = _CAN_FRAME.unpack(frame)
     if can_id & _NOT_DATA or length > 8:
         return None
-    stamp = None
-    for level, kind, raw in ancillary:
-        if level == _SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= _STAMP.size:
-            seconds, nanoseconds = _STAMP.unpack_from(raw)
-            stamp = (seconds + nanoseconds * 1e-9) or None  # python-can's own sum: the same float
-    return can_id, data[:length], stamp
+    return can_id, data[:length], kernel_stamp(ancillary) or None
 
 
 class RawCanReceiver:
