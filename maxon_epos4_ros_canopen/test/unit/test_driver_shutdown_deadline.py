@@ -257,3 +257,36 @@ def test_a_mode_switch_that_asks_to_enable_after_shutdown_began_is_refused(rig):
     words = _controlwords(rig, 0x201)
     assert words and not any(w & 0x000F == 0x000F for w in words[words.index(CW_DISABLE_VOLTAGE):]), \
         ["0x%04X" % w for w in words]
+
+
+def _rxpdos_stop_reaching(rig, node_id):
+    """The drive takes none of the driver's RxPDOs any more (its receive
+    mapping changed by another tool, or frames lost on the way); its
+    TxPDOs, heartbeat and SDO server run on. The cycle still hears it, so
+    shutdown first tries to stop it through the cycle."""
+    rig.sim.nodes[node_id]._on_rpdo = lambda rpdo, data, now: None
+
+
+@pytest.mark.parametrize("how", ["shutdown", "close"])
+def test_a_drive_that_takes_no_rxpdo_is_stopped_over_sdo_within_the_deadline(rig, how):
+    """Quick stop through the cycle is never confirmed by a drive that
+    takes no RxPDO. Shutdown must not spend its whole deadline waiting for
+    that: the drive still turning is stopped and disabled over SDO, as a
+    drive the cycle does not hear would be."""
+    d = _two_drives_turning(rig)
+    rig.drain()
+    _rxpdos_stop_reaching(rig, 1)
+    start = rig.clock.now()
+    answer = d.shutdown() if how == "shutdown" else None
+    if answer is None:
+        d.close()
+    message = answer.message if answer is not None else ""
+    took = rig.clock.now() - start
+    assert took <= SHUTDOWN_DEADLINE, "%s took %.3f s of the clock: %s" % (how, took, message)
+    # within the 20 cycles it is given and the SDO steps, not the whole deadline
+    assert answer is None or answer.success, message
+    for node in (1, 2):
+        assert rig.read(0x606C, node=node) == 0, (node, message)
+        assert rig.state(node=node) == State.SWITCH_ON_DISABLED, (node, rig.state(node=node), message)
+    nmt = rig.sent(0x000)
+    assert b"\x02\x01" in nmt and b"\x02\x02" in nmt, nmt

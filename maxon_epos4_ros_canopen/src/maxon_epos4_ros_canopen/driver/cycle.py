@@ -543,11 +543,13 @@ class ControlCycle:
 
     def go(self, names: Sequence[str], state: State, fault_reset: bool = False,
            timeout: Optional[float] = None, stop_on_error: bool = True,
-           together: Sequence[Any] = (), unheard_cycles: Optional[int] = None) -> Optional[str]:
+           together: Sequence[Any] = (), answer_cycles: Optional[int] = None) -> Optional[str]:
         """Drive joints to a CiA 402 state through the cycle; an error text or
         None. ``together``: requests the cycle takes in the same breath.
-        ``unheard_cycles``: stop waiting for a drive whose statusword TxPDO
-        has not come for that many cycles."""
+        ``answer_cycles``, for a state the drive takes at once (no ramp
+        before it): stop waiting for a drive whose statusword TxPDO has not
+        come for that many cycles, or came that many cycles after the
+        request without showing the state (a drive that takes no RxPDO)."""
         names = tuple(names)
         if not names:
             return None
@@ -557,11 +559,12 @@ class ControlCycle:
             # on a statusword that came after the request, not a stale one
             return a.held_state == state and a.target_state is None and a.state == state and a.status_cycle > after
 
-        def unheard(s: DriverSnapshot, a: AxisSnapshot) -> bool:
-            return unheard_cycles is not None and s.cycle - max(a.status_cycle, after) > unheard_cycles
+        def unanswered(s: DriverSnapshot, a: AxisSnapshot) -> bool:
+            return answer_cycles is not None and (s.cycle - max(a.status_cycle, after) > answer_cycles
+                                                  or a.status_cycle - after > answer_cycles)
 
         def settled(s: DriverSnapshot) -> bool:
-            return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) or unheard(s, s.axes[n])
+            return all(there(s.axes[n]) or (stop_on_error and s.axes[n].error) or unanswered(s, s.axes[n])
                        for n in names)
         reached = self.wait(settled, timeout or self._timeouts.state, after)
         snap = self.snapshot

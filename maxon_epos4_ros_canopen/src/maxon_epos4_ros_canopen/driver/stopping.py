@@ -28,7 +28,9 @@ log = logging.getLogger("maxon_epos4_ros_canopen.driver")
 QUICK_STOP_DECELERATION = ObjectKey(0x6085)
 _STANDSTILL = 2  # |0x606C| at or below this is standing still
 # Shutdown goes through the cycle for a drive whose statusword TxPDO came
-# within this many cycles, over SDO for the others.
+# within this many cycles, over SDO for the others; and over SDO for one
+# that has not taken quick stop or disable voltage (transitions a drive
+# makes at once) this many cycles after the cycle asked it.
 HEARD_CYCLES = 20
 # A controlword through the cycle at or past shutdown's deadline is still
 # waited for this many cycles (at least PDO_GRACE_MIN s): it goes out, and
@@ -78,7 +80,7 @@ class Stopping:
         cycle = self._cycle
         snap = cycle.snapshot.axes
         enabled = [n for n in names if snap[n].state == State.OPERATION_ENABLED]
-        err = cycle.go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False, unheard_cycles=HEARD_CYCLES,
+        err = cycle.go(enabled, State.QUICK_STOP_ACTIVE, stop_on_error=False, answer_cycles=HEARD_CYCLES,
                        timeout=self.pdo_wait(until))
         self._note_pdo_step(until, "quick stop through the cycle", err)
         snap = cycle.snapshot.axes
@@ -86,7 +88,7 @@ class Stopping:
         stopping = [n for n in enabled if snap[n].state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)]
         at_rest = self._wait_standstill(stopping, until)
         live = [n for n in names if (n in at_rest or n not in enabled) and snap[n].state not in (State.FAULT, None)]
-        err = cycle.go(live, State.SWITCH_ON_DISABLED, stop_on_error=False, unheard_cycles=HEARD_CYCLES,
+        err = cycle.go(live, State.SWITCH_ON_DISABLED, stop_on_error=False, answer_cycles=HEARD_CYCLES,
                        timeout=self.pdo_wait(until))
         self._note_pdo_step(until, "disable voltage through the cycle", err)
         snap = cycle.snapshot.axes
