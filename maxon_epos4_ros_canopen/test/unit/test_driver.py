@@ -275,6 +275,63 @@ def test_shutdown_disables_over_sdo_a_drive_that_left_operational_by_itself(rig)
     assert "operation_enabled" not in r.message, r.message
 
 
+def test_a_drive_that_left_operational_while_braking_is_disabled_over_sdo_only_at_rest(rig):
+    """As above, but the drive's heartbeat consumer tripped (the master
+    stalled): it brakes on its quick stop ramp in PRE-OPERATIONAL, where
+    only SDO reaches it. Shutdown's SDO way waits for its standstill too
+    before disable voltage: a motor whose power is cut while it turns
+    coasts (the virtual EPOS4 keeps the speed it had, as a motor without
+    load would)."""
+    d = rig.start(master_consumer=None)
+    assert d.init().success
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 500.0).success
+    assert rig.until(lambda: rig.read(0x606C) > 450)
+    rig.sim.nodes[1].store.set(0x6085, 0, 500)  # rpm/s: about a second from 500 rpm to rest
+    d._link.heartbeat.stop()  # the master stalls: no heartbeat for longer than the consumer time
+    assert rig.until(lambda: rig.sim.nodes[1].nmt_state == 0x7F)
+    assert rig.state() == State.QUICK_STOP_ACTIVE and rig.read(0x606C) > 300  # still braking
+    r = d.shutdown()
+    assert rig.state() == State.SWITCH_ON_DISABLED and rig.read(0x606C) == 0, r.message
+    assert "operation_enabled" not in r.message, r.message
+
+
+@pytest.mark.parametrize("how", ["shutdown", "close"])
+def test_a_drive_still_on_its_quick_stop_ramp_is_disabled_only_at_rest(rig, how):
+    """Something else quick-stopped the drive (another master's controlword
+    by SDO here; a quick stop input does the same) and it is still braking
+    on a slow ramp when shutdown begins. Disable voltage now would cut the
+    power of a turning motor and let it coast: shutdown waits for the
+    standstill, read over SDO, as it does for the drives it quick-stops
+    itself, and only then disables."""
+    d = rig.start()
+    assert d.init().success
+    assert d.switch_mode([J1], 3).success
+    assert d.set_command(J1, "velocity", 500.0).success
+    assert rig.until(lambda: rig.read(0x606C) > 450)
+    rig.sim.nodes[1].store.set(0x6085, 0, 500)  # rpm/s: about a second from 500 rpm to rest
+    rig.sniffer.send(can.Message(arbitration_id=0x601, data=bytes([0x2B, 0x40, 0x60, 0, 0x02, 0, 0, 0]),
+                                 is_extended_id=False))  # 0x6040 = quick stop, by another SDO client
+    assert rig.until(lambda: rig.state() == State.QUICK_STOP_ACTIVE)
+    assert rig.until(lambda: d.joints[J1].error is not None)  # the driver saw the drive leave the state it held
+    assert rig.read(0x606C) > 300  # still turning
+    rig.drain()
+    if how == "shutdown":
+        r = d.shutdown()
+        assert r.success, r.message
+    else:
+        d.close()
+    assert rig.state() == State.SWITCH_ON_DISABLED and rig.read(0x606C) == 0
+    # no controlword that takes the power away went out while the drive
+    # turned (standstill as the driver judges it: |0x606C| <= 2 rpm)
+    velocity = None
+    for m in rig._collect():
+        if m.arbitration_id == 0x281 and len(m.data) == 8:
+            velocity = struct.unpack_from("<i", m.data, 4)[0]  # 0x606C in TxPDO2
+        if m.arbitration_id == 0x201 and struct.unpack_from("<H", m.data)[0] & 0x0082 == 0x0000:
+            assert velocity is not None and abs(velocity) <= 2, "disable voltage sent at %s rpm" % velocity
+
+
 def test_a_forged_heartbeat_does_not_send_a_drive_it_hears_the_sdo_way_at_shutdown(rig):
     """Anyone on the bus can send node 1's heartbeat saying pre-operational
     while the real drive is operational and its TxPDOs keep coming. Shutdown

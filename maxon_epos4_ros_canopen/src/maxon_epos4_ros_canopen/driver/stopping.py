@@ -84,16 +84,24 @@ class Stopping:
                        timeout=self.pdo_wait(until))
         self._note_pdo_step(until, "quick stop through the cycle", err)
         snap = cycle.snapshot.axes
-        # options 0-2 end the quick stop in Switch On Disabled by themselves
-        stopping = [n for n in enabled if snap[n].state in (State.QUICK_STOP_ACTIVE, State.SWITCH_ON_DISABLED)]
+        # Braking, maybe: the drives quick-stopped just now (options 0-2 end
+        # the quick stop in Switch On Disabled by themselves) and any drive
+        # in Quick Stop Active already, which something else quick-stopped
+        # (its quick stop input, another master, the driver's own hold) and
+        # may still be on its ramp. Disable voltage before their standstill
+        # would let them coast.
+        stopping = [n for n in names if snap[n].state == State.QUICK_STOP_ACTIVE
+                    or (n in enabled and snap[n].state == State.SWITCH_ON_DISABLED)]
         at_rest = self._wait_standstill(stopping, until)
-        live = [n for n in names if (n in at_rest or n not in enabled) and snap[n].state not in (State.FAULT, None)]
+        # the others were not driven when shutdown began (Switched On and below)
+        idle = [n for n in names if n not in enabled and n not in stopping]
+        live = [n for n in names if (n in at_rest or n in idle) and snap[n].state not in (State.FAULT, None)]
         err = cycle.go(live, State.SWITCH_ON_DISABLED, stop_on_error=False, answer_cycles=HEARD_CYCLES,
                        timeout=self.pdo_wait(until))
         self._note_pdo_step(until, "disable voltage through the cycle", err)
         snap = cycle.snapshot.axes
         return [n for n in names if snap[n].state in (State.SWITCH_ON_DISABLED, State.FAULT)
-                and (n in at_rest or n not in enabled)]
+                and (n in at_rest or n in idle)]
 
     def _note_pdo_step(self, until: Optional[Deadline], step: str, err: Optional[str]) -> None:
         if err and until is not None and until.passed:
@@ -187,6 +195,11 @@ class Stopping:
             if state == State.OPERATION_ENABLED:
                 step = "quick stop"
                 self._command(name, State.QUICK_STOP_ACTIVE, cia402.CW_QUICK_STOP, until)
+                state = State.QUICK_STOP_ACTIVE
+            if state == State.QUICK_STOP_ACTIVE:
+                # quick-stopped just now, or before by something else (its
+                # heartbeat consumer, its quick stop input): it may still
+                # brake, and without voltage it would coast
                 step = "waiting for standstill"
                 state = self._standstill(name, until)
             if state in (State.QUICK_STOP_ACTIVE, State.SWITCHED_ON, State.READY_TO_SWITCH_ON):
