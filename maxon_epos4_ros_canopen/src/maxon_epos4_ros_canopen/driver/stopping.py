@@ -93,15 +93,15 @@ class Stopping:
         stopping = [n for n in names if snap[n].state == State.QUICK_STOP_ACTIVE
                     or (n in enabled and snap[n].state == State.SWITCH_ON_DISABLED)]
         at_rest = self._wait_standstill(stopping, until)
-        # the others were not driven when shutdown began (Switched On and below)
-        idle = [n for n in names if n not in enabled and n not in stopping]
-        live = [n for n in names if (n in at_rest or n in idle) and snap[n].state not in (State.FAULT, None)]
+        # disabled: those at rest, and those not driven when shutdown began
+        # (Switched On and below)
+        to_disable = [n for n in names if n in at_rest or (n not in enabled and n not in stopping)]
+        live = [n for n in to_disable if snap[n].state not in (State.FAULT, None)]
         err = cycle.go(live, State.SWITCH_ON_DISABLED, stop_on_error=False, answer_cycles=HEARD_CYCLES,
                        timeout=self.pdo_wait(until))
         self._note_pdo_step(until, "disable voltage through the cycle", err)
         snap = cycle.snapshot.axes
-        return [n for n in names if snap[n].state in (State.SWITCH_ON_DISABLED, State.FAULT)
-                and (n in at_rest or n in idle)]
+        return [n for n in to_disable if snap[n].state in (State.SWITCH_ON_DISABLED, State.FAULT)]
 
     def _note_pdo_step(self, until: Optional[Deadline], step: str, err: Optional[str]) -> None:
         if err and until is not None and until.passed:
